@@ -1,0 +1,52 @@
+"""Exceptions raised by :mod:`core`.
+
+Every error that bad input can cause is an :class:`InputError`; the service maps it to an
+HTTP 4xx problem document and the CLI to a non-zero exit with the message.
+"""
+
+from __future__ import annotations
+
+
+class RegistrationError(Exception):
+    """Base class of every error raised on purpose by :mod:`core`."""
+
+
+class InputError(RegistrationError, ValueError):
+    """The input (images, points or options) cannot be registered.
+
+    Parameters
+    ----------
+    message : str
+        Human-readable reason, naming what is wrong and what is expected.
+    field : str, optional
+        Name of the input the error is about (``reference``, ``moving``, ``points``,
+        ``options.<name>``), so that an API can point at it.
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
+
+
+class NotEnoughPointsError(InputError):
+    """Too few consistent conjugate point pairs to build a mesh.
+
+    Parameters
+    ----------
+    found : int
+        Number of usable pairs.
+    needed : int
+        Minimum number of pairs required.
+    stage : str
+        Stage at which the pairs ran out (e.g. ``"matching"``, ``"epipolar filter"``).
+    """
+
+    def __init__(self, found: int, needed: int, stage: str, field: str | None = "points") -> None:
+        super().__init__(
+            f"only {found} consistent conjugate point pairs after {stage}; at least {needed} "
+            "are needed",
+            field=field,
+        )
+        self.found = found
+        self.needed = needed
+        self.stage = stage
