@@ -50,3 +50,11 @@ class NotEnoughPointsError(InputError):
         self.found = found
         self.needed = needed
         self.stage = stage
+
+
+class UnsupportedMediaError(InputError):
+    """The bytes are not an image in a supported format (PNG, JPEG, TIFF, PNM, BMP)."""
+
+
+class ImageTooLargeError(InputError):
+    """The image has more pixels (or a longer side) than allowed; refused before decoding."""

@@ -51,8 +51,11 @@ class RegistrationOptions(BaseModel):
         100_000, ge=0, le=10_000_000, description="Upper bound on accepted swaps."
     )
     seed: int = Field(
-        0, ge=0, le=2**31 - 1, description="Seed of every random choice (robust estimation, "
-        "random search); the same input and seed give the same result."
+        0,
+        ge=0,
+        le=2**31 - 1,
+        description="Seed of every random choice (robust estimation, "
+        "random search); the same input and seed give the same result.",
     )
 
     # --- conjugate points (matching and epipolar filter) ---------------------------------------
@@ -68,8 +71,9 @@ class RegistrationOptions(BaseModel):
         "paper or the projective fundamental matrix (close-range perspective photos).",
     )
     epipolar_filter: bool = Field(
-        True, description="Reject point pairs inconsistent with the epipolar geometry (also "
-        "applied to points sent by the client)."
+        True,
+        description="Reject point pairs inconsistent with the epipolar geometry (also "
+        "applied to points sent by the client).",
     )
     epipolar_threshold: float = Field(
         1.5,

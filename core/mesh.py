@@ -1,0 +1,243 @@
+"""Two isomorphic triangle meshes (reference and moving) and the edge swap.
+
+A mesh has vertices in both images (the same index is the same conjugate point) and one list of
+triangles shared by both. Every triangle is stored positively oriented in the reference image
+(see :func:`core.raster.orientation`); a triangle whose moving orientation differs is a *patch
+reversal*.
+
+Edges are ``(i, j)`` tuples with ``i < j``. An edge with two adjacent triangles is internal, one
+with a single triangle is on the boundary.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.raster import SUBPIXEL, orientation, quantize
+
+Edge = tuple[int, int]
+
+
+def orient_fixed(p: tuple[int, int], q: tuple[int, int], r: tuple[int, int]) -> int:
+    """Exact orientation sign of fixed-point points (Python ints: fast for single tests)."""
+    cross = (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
+    return (cross > 0) - (cross < 0)
+
+
+def edge_key(i: int, j: int) -> Edge:
+    """Canonical ``(min, max)`` form of an edge."""
+    return (i, j) if i < j else (j, i)
+
+
+@dataclass(frozen=True)
+class Quad:
+    """The two triangles around an internal edge ``{i, j}``.
+
+    ``k`` and ``l`` are the vertices opposite the edge; swapping ``{i, j}`` gives ``{k, l}``.
+    ``slots`` are the indices of the two triangles in :attr:`Mesh.triangles`.
+    """
+
+    i: int
+    j: int
+    k: int
+    l: int  # noqa: E741 - the paper's name
+    slots: tuple[int, int]
+
+    @property
+    def boundary(self) -> tuple[Edge, Edge, Edge, Edge]:
+        """The four outer edges of the quad."""
+        i, j, k, l = self.i, self.j, self.k, self.l  # noqa: E741
+        return (edge_key(i, k), edge_key(k, j), edge_key(j, l), edge_key(l, i))
+
+    def swapped_triangles(self) -> tuple[tuple[int, int, int], tuple[int, int, int]]:
+        """Vertex triples of the two triangles after the swap, ``{k, l, i}`` and ``{k, l, j}``."""
+        return (self.k, self.l, self.i), (self.k, self.l, self.j)
+
+
+class Mesh:
+    """Mutable pair of isomorphic triangle meshes.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, shape (N, 2)
+        Vertex coordinates in pixels; they are quantized (:func:`core.raster.quantize`) so that
+        every orientation test is exact.
+    triangles : ndarray, shape (T, 3)
+        Vertex indices. Re-ordered so that each triangle is positively oriented in the reference
+        image; degenerate triangles (zero reference area) are rejected with ``ValueError``.
+    """
+
+    def __init__(self, reference: np.ndarray, moving: np.ndarray, triangles: np.ndarray) -> None:
+        self.reference = quantize(reference).reshape(-1, 2)
+        self.moving = quantize(moving).reshape(-1, 2)
+        if self.reference.shape != self.moving.shape:
+            raise ValueError("reference and moving vertices must have the same shape")
+        self.ref_fixed = [
+            tuple(v) for v in np.rint(self.reference * SUBPIXEL).astype(np.int64).tolist()
+        ]
+        self.mov_fixed = [
+            tuple(v) for v in np.rint(self.moving * SUBPIXEL).astype(np.int64).tolist()
+        ]
+        tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+        if len(tris) and (tris.min() < 0 or tris.max() >= len(self.reference)):
+            raise ValueError("triangle vertex index out of range")
+        self._tris: list[tuple[int, int, int] | None] = []
+        self._edges: dict[Edge, list[int]] = {}
+        for t in tris:
+            self._add(self._oriented(int(t[0]), int(t[1]), int(t[2])))
+
+    # -- construction helpers ------------------------------------------------------------------
+    def _oriented(self, a: int, b: int, c: int) -> tuple[int, int, int]:
+        s = orient_fixed(self.ref_fixed[a], self.ref_fixed[b], self.ref_fixed[c])
+        if s == 0:
+            raise ValueError(f"degenerate triangle {(a, b, c)} in the reference mesh")
+        return (a, b, c) if s > 0 else (a, c, b)
+
+    def _add(self, tri: tuple[int, int, int], slot: int | None = None) -> int:
+        if slot is None:
+            slot = len(self._tris)
+            self._tris.append(tri)
+        else:
+            self._tris[slot] = tri
+        a, b, c = tri
+        for e in (edge_key(a, b), edge_key(b, c), edge_key(c, a)):
+            self._edges.setdefault(e, []).append(slot)
+        return slot
+
+    def _drop(self, slot: int) -> None:
+        tri = self._tris[slot]
+        assert tri is not None
+        a, b, c = tri
+        for e in (edge_key(a, b), edge_key(b, c), edge_key(c, a)):
+            owners = self._edges[e]
+            owners.remove(slot)
+            if not owners:
+                del self._edges[e]
+        self._tris[slot] = None
+
+    # -- queries -------------------------------------------------------------------------------
+    @property
+    def triangles(self) -> np.ndarray:
+        """Current triangles, ``(T, 3)`` int64, in slot order (removed slots skipped)."""
+        live = [t for t in self._tris if t is not None]
+        return np.array(live, dtype=np.int64).reshape(-1, 3)
+
+    @property
+    def n_triangles(self) -> int:
+        """Number of triangles."""
+        return sum(t is not None for t in self._tris)
+
+    def slots(self) -> list[int]:
+        """Slot indices of the live triangles."""
+        return [s for s, t in enumerate(self._tris) if t is not None]
+
+    def triangle(self, slot: int) -> tuple[int, int, int]:
+        """Vertex triple stored in ``slot``."""
+        tri = self._tris[slot]
+        if tri is None:
+            raise KeyError(f"slot {slot} holds no triangle")
+        return tri
+
+    def edges(self) -> list[Edge]:
+        """All edges, sorted."""
+        return sorted(self._edges)
+
+    def has_edge(self, e: Edge) -> bool:
+        """Whether edge ``e`` exists."""
+        return edge_key(*e) in self._edges
+
+    def is_internal(self, e: Edge) -> bool:
+        """Whether ``e`` is shared by two triangles."""
+        return len(self._edges.get(edge_key(*e), ())) == 2
+
+    def internal_edges(self) -> list[Edge]:
+        """Edges shared by two triangles, sorted."""
+        return sorted(e for e, s in self._edges.items() if len(s) == 2)
+
+    def boundary_edges(self) -> list[Edge]:
+        """Edges with a single triangle, sorted."""
+        return sorted(e for e, s in self._edges.items() if len(s) == 1)
+
+    def edge_triangles(self, e: Edge) -> list[int]:
+        """Slots of the triangles adjacent to ``e`` (empty if it does not exist)."""
+        return list(self._edges.get(edge_key(*e), ()))
+
+    def quad(self, e: Edge) -> Quad:
+        """Quad of internal edge ``e``; ``ValueError`` if ``e`` is not internal."""
+        i, j = edge_key(*e)
+        owners = self._edges.get((i, j), [])
+        if len(owners) != 2:
+            raise ValueError(f"edge {(i, j)} is not internal")
+        s0, s1 = owners
+        k = sum(self._tris[s0]) - i - j  # type: ignore[arg-type]
+        l = sum(self._tris[s1]) - i - j  # type: ignore[arg-type]  # noqa: E741
+        return Quad(i, j, k, l, (s0, s1))
+
+    def reversed_slots(self) -> list[int]:
+        """Slots of patch reversals: triangles not positively oriented in the moving mesh."""
+        live = [(s, t) for s, t in enumerate(self._tris) if t is not None]
+        if not live:
+            return []
+        idx = np.array([t for _, t in live])
+        m = self.moving[idx]
+        sign = orientation(m[:, 0], m[:, 1], m[:, 2])
+        return [s for (s, _), g in zip(live, sign, strict=True) if g <= 0]
+
+    def swap_blocker(self, e: Edge) -> str | None:
+        """Why edge ``e`` cannot be swapped, or ``None`` if it can.
+
+        The preconditions of the paper: the edge is internal; the new edge does not exist yet;
+        the quad is strictly convex in the reference mesh and in the moving mesh, and the two new
+        triangles are not patch reversals.
+        """
+        if not self.is_internal(e):
+            return "boundary edge" if self.has_edge(e) else "no such edge"
+        q = self.quad(e)
+        if self.has_edge((q.k, q.l)):
+            return "new edge exists"
+        for pts in (self.ref_fixed, self.mov_fixed):
+            pi, pj, pk, pl = pts[q.i], pts[q.j], pts[q.k], pts[q.l]
+            if orient_fixed(pi, pj, pk) * orient_fixed(pi, pj, pl) >= 0:
+                return "quad not strictly convex"
+            if orient_fixed(pk, pl, pi) * orient_fixed(pk, pl, pj) >= 0:
+                return "quad not strictly convex"
+        for a, b, c in q.swapped_triangles():
+            r = orient_fixed(self.ref_fixed[a], self.ref_fixed[b], self.ref_fixed[c])
+            m = orient_fixed(self.mov_fixed[a], self.mov_fixed[b], self.mov_fixed[c])
+            if r != m:
+                return "swap creates a patch reversal"
+        return None
+
+    def can_swap(self, e: Edge) -> bool:
+        """Whether ``e`` meets every swap precondition."""
+        return self.swap_blocker(e) is None
+
+    # -- modifications -------------------------------------------------------------------------
+    def swap(self, e: Edge, check: bool = True) -> Edge:
+        """Replace internal edge ``{i, j}`` by ``{k, l}``; returns the new edge.
+
+        With ``check`` the preconditions are verified first (``ValueError`` if not met);
+        without, only topology is required (used to repair patch reversals).
+        """
+        if check:
+            why = self.swap_blocker(e)
+            if why is not None:
+                raise ValueError(f"cannot swap edge {edge_key(*e)}: {why}")
+        q = self.quad(e)
+        s0, s1 = q.slots
+        self._drop(s0)
+        self._drop(s1)
+        t0, t1 = q.swapped_triangles()
+        self._add(self._oriented(*t0), s0)
+        self._add(self._oriented(*t1), s1)
+        return edge_key(q.k, q.l)
+
+    def remove_triangle(self, slot: int) -> None:
+        """Delete the triangle in ``slot`` (its slot stays empty)."""
+        self._drop(slot)
+
+    def copy(self) -> Mesh:
+        """Independent copy with the same vertices and triangles (slots compacted)."""
+        return Mesh(self.reference, self.moving, self.triangles)

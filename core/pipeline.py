@@ -1,0 +1,223 @@
+"""The one entry point: register a pair of images (:func:`register`)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from core.errors import InputError
+from core.imaging import check_image
+from core.matching import ConjugatePoints, find_conjugate_points
+from core.mesh import Mesh
+from core.optimize import SearchResult, greedy_search
+from core.options import RegistrationOptions
+from core.similarity import (
+    ScoringImages,
+    mutual_information,
+    prepare_images,
+    triangle_statistics,
+)
+from core.triangulation import TriangulationReport, initial_mesh
+from core.warp import MAX_SIDE, warp_image
+
+Progress = Callable[[str, float], None]
+STAGES = ("matching", "triangulating", "optimizing", "rendering")
+
+
+@dataclass
+class RegistrationResult:
+    """Everything one registration produces.
+
+    Attributes
+    ----------
+    reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        Mesh vertices in pixels (quantized to 1/256 px), same index = conjugate pair.
+    initial_triangles : ndarray, shape (T0, 3)
+        Mesh the search started from (after small-triangle removal and patch-reversal repair).
+    final_triangles : ndarray, shape (T, 3)
+        Optimized mesh.
+    search : SearchResult
+        Accepted swaps, global MI/NMI before and after, why the search stopped.
+    registered : ndarray, shape (H, W, 2) or (H, W, 4)
+        Moving image resampled into the reference frame, grey+alpha or BGRA, dtype of the
+        moving image; alpha is 0 outside the mesh.
+    options : RegistrationOptions
+        Options used.
+    points : ConjugatePoints
+        Conjugate points with matching and epipolar-filter results.
+    triangulation : TriangulationReport
+        Duplicates, small triangles and patch-reversal repairs.
+    timings : dict of str to float
+        Seconds spent per stage and in total.
+    reference_size, moving_size : (int, int)
+        ``(width, height)`` of the two images.
+    """
+
+    reference_vertices: np.ndarray
+    moving_vertices: np.ndarray
+    initial_triangles: np.ndarray
+    final_triangles: np.ndarray
+    search: SearchResult
+    registered: np.ndarray
+    options: RegistrationOptions
+    points: ConjugatePoints
+    triangulation: TriangulationReport
+    timings: dict[str, float]
+    reference_size: tuple[int, int]
+    moving_size: tuple[int, int]
+
+    def summary(self) -> str:
+        """One line: points, triangles, swaps, global MI before and after, time."""
+        s = self.search
+        return (
+            f"{len(self.reference_vertices)} points ({self.points.source}), "
+            f"{len(self.final_triangles)} triangles, {len(s.steps)} swaps "
+            f"[{self.options.optimizer}/{self.options.cost}], "
+            f"MI {s.initial_mi:.4f} -> {s.final_mi:.4f} bits, "
+            f"NMI {s.initial_nmi:.4f} -> {s.final_nmi:.4f}, "
+            f"{self.timings['total_s']:.2f} s"
+        )
+
+
+def parse_options(options: RegistrationOptions | Mapping[str, Any] | None) -> RegistrationOptions:
+    """Options from a model, a mapping or ``None`` (defaults); ``InputError`` if invalid."""
+    if options is None:
+        return RegistrationOptions()
+    if isinstance(options, RegistrationOptions):
+        return options
+    try:
+        return RegistrationOptions.model_validate(dict(options))
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        name = ".".join(str(p) for p in err["loc"])
+        raise InputError(f"invalid option {name!r}: {err['msg']}", f"options.{name}") from exc
+
+
+def _unoptimized(images: ScoringImages, mesh: Mesh) -> SearchResult:
+    tris = mesh.triangles
+    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
+    mi, nmi = (float(v) for v in mutual_information(hist.sum(axis=0), images.bins))
+    return SearchResult(
+        initial_mi=mi, initial_nmi=nmi, final_mi=mi, final_nmi=nmi, stopped_because="optimizer none"
+    )
+
+
+def register(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
+    options: RegistrationOptions | Mapping[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> RegistrationResult:
+    """Register ``moving`` onto ``reference`` with an optimized piecewise-linear mesh.
+
+    Parameters
+    ----------
+    reference, moving : ndarray
+        OpenCV-layout images (uint8 or uint16; grey, BGR or BGRA), sizes may differ.
+    points : (ndarray, ndarray), optional
+        Conjugate points ``(reference (N, 2), moving (N, 2))`` in pixels. Without them the
+        automatic matcher finds them. Either way the epipolar filter applies unless
+        ``options.epipolar_filter`` is false.
+    options : RegistrationOptions or mapping, optional
+        Defaults when omitted.
+    progress : callable, optional
+        ``progress(stage, fraction)`` with ``stage`` in :data:`STAGES` and ``fraction`` in
+        [0, 1]; if it raises, registration stops and the exception propagates (cancellation).
+
+    Returns
+    -------
+    RegistrationResult
+
+    Raises
+    ------
+    InputError
+        Invalid images, points or options, or too few consistent conjugate points.
+    """
+    opts = parse_options(options)
+    check_image(reference, "reference")
+    check_image(moving, "moving")
+    for name, img in (("reference", reference), ("moving", moving)):
+        if max(img.shape[:2]) > MAX_SIDE:
+            raise InputError(f"{name} has a side longer than {MAX_SIDE} pixels", name)
+
+    def report(stage: str, fraction: float) -> None:
+        if progress is not None:
+            progress(stage, min(max(fraction, 0.0), 1.0))
+
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+
+    report("matching", 0.0)
+    pts = None
+    if points is not None:
+        ref_pts = np.asarray(points[0], dtype=np.float64).reshape(-1, 2)
+        mov_pts = np.asarray(points[1], dtype=np.float64).reshape(-1, 2)
+        if len(ref_pts) != len(mov_pts):
+            raise InputError(
+                f"{len(ref_pts)} reference points but {len(mov_pts)} moving points", "points"
+            )
+        pts = (ref_pts, mov_pts)
+    conjugate = find_conjugate_points(reference, moving, opts, pts)
+    timings["matching_s"] = time.perf_counter() - t_start
+    report("matching", 1.0)
+
+    t = time.perf_counter()
+    report("triangulating", 0.0)
+    mesh, tri_report = initial_mesh(conjugate.reference, conjugate.moving, opts.min_triangle_area)
+    initial_triangles = mesh.triangles
+    timings["triangulation_s"] = time.perf_counter() - t
+    report("triangulating", 1.0)
+
+    t = time.perf_counter()
+    report("optimizing", 0.0)
+    images = prepare_images(reference, moving, opts.bins)
+    if opts.optimizer == "none":
+        search = _unoptimized(images, mesh)
+    elif opts.optimizer == "greedy":
+        search = greedy_search(
+            mesh,
+            images,
+            cost=opts.cost,
+            epsilon=opts.epsilon,
+            max_iterations=opts.max_iterations,
+            progress=lambda f: report("optimizing", f),
+        )
+    else:
+        from core.baselines import run_baseline
+
+        search = run_baseline(
+            opts.optimizer, mesh, images, opts, progress=lambda f: report("optimizing", f)
+        )
+    timings["optimization_s"] = time.perf_counter() - t
+    report("optimizing", 1.0)
+
+    t = time.perf_counter()
+    report("rendering", 0.0)
+    final_triangles = mesh.triangles
+    registered = warp_image(
+        moving, mesh.reference, mesh.moving, final_triangles, reference.shape[:2]
+    )
+    timings["rendering_s"] = time.perf_counter() - t
+    timings["total_s"] = time.perf_counter() - t_start
+    report("rendering", 1.0)
+
+    return RegistrationResult(
+        reference_vertices=mesh.reference,
+        moving_vertices=mesh.moving,
+        initial_triangles=initial_triangles,
+        final_triangles=final_triangles,
+        search=search,
+        registered=registered,
+        options=opts,
+        points=conjugate,
+        triangulation=tri_report,
+        timings=timings,
+        reference_size=(reference.shape[1], reference.shape[0]),
+        moving_size=(moving.shape[1], moving.shape[0]),
+    )

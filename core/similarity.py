@@ -1,0 +1,202 @@
+"""Per-triangle joint histograms and the consistency measures built on them.
+
+The reference pixels of a triangle (the fill rule of :mod:`core.raster`) are paired with the
+moving image resampled bilinearly through the triangle's affine map. Each triangle yields a joint
+histogram of ``M x M`` grey-level bins and six moments, all additive over disjoint pixel sets:
+the statistics of a quad, or of the whole mesh, are sums of its triangles'.
+
+Mutual information is in bits: ``MI = H(A) + H(B) - H(A, B)``; the paper normalises it as
+``NMI = MI / H(A, B)`` (not scikit-image's ``(H(A) + H(B)) / H(A, B)``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.imaging import max_value, to_gray
+from core.raster import affine_maps, rasterize, triangle_areas
+from core.warp import map_spans, sample_bilinear
+
+MOMENTS = ("n", "sum_a", "sum_b", "sum_aa", "sum_bb", "sum_ab")
+"""Order of the per-triangle moments (a: reference grey level, b: resampled moving level)."""
+
+_CHUNK_PIXELS = 2_000_000
+
+
+@dataclass(frozen=True)
+class ScoringImages:
+    """Both images prepared once for scoring.
+
+    Attributes
+    ----------
+    shape : (int, int)
+        ``(height, width)`` of the reference image.
+    bins : int
+        Grey-level bins per image (M).
+    reference_bins : ndarray of uint8/uint16, shape (H * W,)
+        Bin of every reference pixel, row-major.
+    reference_values : ndarray of float32, shape (H * W,)
+        Reference grey level of every pixel, scaled to [0, 1].
+    moving : ndarray of float32, shape (H', W')
+        Moving grey levels scaled to [0, 1].
+    moving_bin_scale : float
+        A resampled moving value ``v`` (in [0, 1]) falls in bin ``floor(v * moving_bin_scale)``.
+    """
+
+    shape: tuple[int, int]
+    bins: int
+    reference_bins: np.ndarray
+    reference_values: np.ndarray
+    moving: np.ndarray
+    moving_bin_scale: float
+
+
+def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> ScoringImages:
+    """Luminance of both images, binned (reference) or scaled to float (moving).
+
+    A grey level ``g`` of an image whose dtype holds ``0..G`` falls in bin
+    ``floor(g * M / (G + 1))``; resampled moving levels are binned the same way.
+    """
+    ref = to_gray(reference)
+    mov = to_gray(moving)
+    g_ref = max_value(ref)
+    g_mov = max_value(mov)
+    ref_bins = (ref.astype(np.int64) * bins // (g_ref + 1)).astype(
+        np.uint8 if bins <= 256 else np.uint16
+    )
+    return ScoringImages(
+        shape=(ref.shape[0], ref.shape[1]),
+        bins=bins,
+        reference_bins=ref_bins.ravel(),
+        reference_values=(ref.astype(np.float32) / g_ref).ravel(),
+        moving=mov.astype(np.float32) / g_mov,
+        moving_bin_scale=bins * g_mov / (g_mov + 1.0),
+    )
+
+
+def triangle_statistics(
+    images: ScoringImages,
+    reference_triangles: np.ndarray,
+    moving_triangles: np.ndarray,
+    with_moments: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Joint histograms (and optionally moments) of many triangles in one batched pass.
+
+    Parameters
+    ----------
+    images : ScoringImages
+        From :func:`prepare_images`.
+    reference_triangles, moving_triangles : ndarray, shape (T, 3, 2)
+        Corresponding triangle vertices in pixels (quantized).
+    with_moments : bool
+        Also return the six moments of :data:`MOMENTS` (grey levels scaled to [0, 1]).
+
+    Returns
+    -------
+    hist : ndarray of int64, shape (T, M * M)
+        Row-major joint histogram ``h[a * M + b]`` (a: reference bin, b: moving bin).
+    moments : ndarray of float64, shape (T, 6) or None
+    """
+    ref_tri = np.asarray(reference_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    mov_tri = np.asarray(moving_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    n_tri = len(ref_tri)
+    m = images.bins
+    hist = np.zeros((n_tri, m * m), dtype=np.int64)
+    moments = np.zeros((n_tri, 6), dtype=np.float64) if with_moments else None
+    if n_tri == 0:
+        return hist, moments
+    maps = affine_maps(ref_tri, mov_tri)
+    # Bound the memory of one pass: group triangles by their (over-)estimated pixel count.
+    width = images.shape[1]
+    estimate = (
+        triangle_areas(ref_tri)
+        + np.abs(np.diff(ref_tri[:, [0, 1, 2, 0]], axis=1)).sum(axis=(1, 2))
+        + 1
+    )
+    bounds = np.searchsorted(
+        np.cumsum(estimate), np.arange(1, 1 + estimate.sum() // _CHUNK_PIXELS) * _CHUNK_PIXELS
+    )
+    edges = np.unique(np.concatenate([[0], bounds, [n_tri]]))
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        spans = rasterize(ref_tri[lo:hi], images.shape)
+        if spans.n_pixels == 0:
+            continue
+        flat, mx, my = map_spans(spans, maps[lo:hi], width)
+        values = sample_bilinear(images.moving, mx, my)
+        key = np.repeat(spans.triangle * (m * m), spans.length)
+        key += images.reference_bins[flat] * m
+        # Resampled values stay within [0, 1], so their bins need no clipping.
+        key += (values * images.moving_bin_scale).astype(np.intp)
+        hist[lo:hi] += np.bincount(key, minlength=(hi - lo) * m * m).reshape(hi - lo, m * m)
+        if moments is not None:
+            tri = np.repeat(spans.triangle, spans.length)
+            a = images.reference_values[flat].astype(np.float64)
+            b = values.astype(np.float64)
+            k = hi - lo
+            moments[lo:hi, 0] += np.bincount(tri, minlength=k)
+            moments[lo:hi, 1] += np.bincount(tri, a, minlength=k)
+            moments[lo:hi, 2] += np.bincount(tri, b, minlength=k)
+            moments[lo:hi, 3] += np.bincount(tri, a * a, minlength=k)
+            moments[lo:hi, 4] += np.bincount(tri, b * b, minlength=k)
+            moments[lo:hi, 5] += np.bincount(tri, a * b, minlength=k)
+    return hist, moments
+
+
+def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """MI and NMI (bits) of joint histograms.
+
+    Parameters
+    ----------
+    hist : ndarray, shape (..., M * M)
+        Joint counts, row-major ``h[a * M + b]`` (a: reference bin, b: moving bin).
+    bins : int
+        M.
+
+    Returns
+    -------
+    mi : ndarray, shape (...)
+        ``H(A) + H(B) - H(A, B)`` in bits (0 for empty histograms).
+    nmi : ndarray, shape (...)
+        ``MI / H(A, B)`` (0 where ``H(A, B) == 0``).
+    """
+    h = np.asarray(hist, dtype=np.float64)
+    h = h.reshape(h.shape[:-1] + (bins, bins))
+    n = h.sum(axis=(-2, -1))
+    safe_n = np.where(n > 0, n, 1.0)[..., None, None]
+    p = h / safe_n
+    pa = p.sum(axis=-1)
+    pb = p.sum(axis=-2)
+    h_ab = _entropy(p.reshape(p.shape[:-2] + (-1,)))
+    h_a = _entropy(pa)
+    h_b = _entropy(pb)
+    mi = np.maximum(h_a + h_b - h_ab, 0.0)
+    nmi = np.where(h_ab > 0, mi / np.where(h_ab > 0, h_ab, 1.0), 0.0)
+    return mi, nmi
+
+
+def _entropy(p: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, p * np.log2(np.where(p > 0, p, 1.0)), 0.0)
+    return -terms.sum(axis=-1)
+
+
+def ncc(moments: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation in [-1, 1] from summed moments ``(..., 6)``.
+
+    0 where either pixel set has no variance.
+    """
+    m = np.asarray(moments, dtype=np.float64)
+    n = np.maximum(m[..., 0], 1.0)
+    cov = m[..., 5] - m[..., 1] * m[..., 2] / n
+    va = m[..., 3] - m[..., 1] ** 2 / n
+    vb = m[..., 4] - m[..., 2] ** 2 / n
+    den = np.sqrt(np.maximum(va, 0.0) * np.maximum(vb, 0.0))
+    return np.where(den > 1e-12, cov / np.where(den > 1e-12, den, 1.0), 0.0)
+
+
+def ssd(moments: np.ndarray) -> np.ndarray:
+    """Sum of squared differences (grey levels scaled to [0, 1]) from moments ``(..., 6)``."""
+    m = np.asarray(moments, dtype=np.float64)
+    return np.maximum(m[..., 3] + m[..., 4] - 2.0 * m[..., 5], 0.0)

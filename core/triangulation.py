@@ -1,0 +1,171 @@
+"""Initial mesh: Delaunay triangulation, small-triangle removal and patch-reversal repair."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import Delaunay, QhullError
+
+from core.errors import InputError, NotEnoughPointsError
+from core.mesh import Mesh, edge_key, orient_fixed
+from core.raster import quantize, triangle_areas
+
+
+@dataclass
+class TriangulationReport:
+    """What building the initial mesh did.
+
+    Attributes
+    ----------
+    duplicates_removed : int
+        Point pairs dropped because their reference or moving position (quantized to
+        1/256 px) repeated an earlier pair's.
+    small_triangles_removed : int
+        Delaunay triangles with reference area below ``min_triangle_area`` (px^2).
+    repairs : list of dict
+        Patch-reversal repairs in order: ``{"action": "swap", "removed": [i, j], "added":
+        [k, l]}`` or ``{"action": "remove", "triangle": [a, b, c], "reason": ...}``.
+    unrepaired : int
+        Patch reversals left when the repair budget ran out (0 in practice).
+    """
+
+    duplicates_removed: int = 0
+    small_triangles_removed: int = 0
+    repairs: list[dict] = field(default_factory=list)
+    unrepaired: int = 0
+
+    def to_dict(self) -> dict:
+        """JSON-able form."""
+        return {
+            "duplicates_removed": self.duplicates_removed,
+            "small_triangles_removed": self.small_triangles_removed,
+            "patch_reversal_repairs": self.repairs,
+            "unrepaired_patch_reversals": self.unrepaired,
+        }
+
+
+def deduplicate(reference: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Drop pairs whose quantized reference or moving point repeats an earlier pair's.
+
+    Returns the kept reference points, moving points (quantized, original order) and the
+    number dropped.
+    """
+    ref = quantize(reference).reshape(-1, 2)
+    mov = quantize(moving).reshape(-1, 2)
+    _, first_ref = np.unique(ref, axis=0, return_index=True)
+    _, first_mov = np.unique(mov, axis=0, return_index=True)
+    keep = np.zeros(len(ref), dtype=bool)
+    keep[np.intersect1d(first_ref, first_mov)] = True
+    return ref[keep], mov[keep], int((~keep).sum())
+
+
+def delaunay_triangles(points: np.ndarray) -> np.ndarray:
+    """Delaunay triangles ``(T, 3)`` of 2-D points; ``InputError`` if they span no area."""
+    if len(points) < 3:
+        raise NotEnoughPointsError(len(points), 3, "removing duplicate points")
+    try:
+        return Delaunay(points).simplices.astype(np.int64)
+    except QhullError as exc:
+        raise InputError(
+            f"the {len(points)} reference points are collinear or degenerate: no triangle "
+            "can be built",
+            "points",
+        ) from exc
+
+
+def repair_patch_reversals(mesh: Mesh, max_actions: int | None = None) -> tuple[list[dict], int]:
+    """Remove patch reversals in place, as the paper does.
+
+    A reversed triangle with a boundary edge is removed. Otherwise the edge it shares with
+    the neighbour it overlaps in the moving image is swapped: among its edges whose swap keeps
+    the reference mesh valid (strictly convex reference quad, new edge absent), the one leaving
+    the fewest reversed triangles; if no swap lowers the number of reversals, the triangle is
+    removed. Every action lowers the number of reversals or of triangles, so the loop ends.
+
+    Returns the list of actions and the number of reversals left (only if ``max_actions``
+    ran out).
+    """
+    budget = max_actions if max_actions is not None else 4 * mesh.n_triangles + 16
+    actions: list[dict] = []
+    rq, mq = mesh.ref_fixed, mesh.mov_fixed
+    while budget > 0:
+        reversed_slots = mesh.reversed_slots()
+        if not reversed_slots:
+            return actions, 0
+        budget -= 1
+        slot = reversed_slots[0]
+        a, b, c = mesh.triangle(slot)
+        sides = [edge_key(a, b), edge_key(b, c), edge_key(c, a)]
+        if any(not mesh.is_internal(e) for e in sides):
+            mesh.remove_triangle(slot)
+            actions.append(
+                {
+                    "action": "remove",
+                    "triangle": [a, b, c],
+                    "reason": "patch reversal on the boundary",
+                }
+            )
+            continue
+        best: tuple[int, tuple[int, int]] | None = None
+        for e in sides:
+            q = mesh.quad(e)
+            if mesh.has_edge((q.k, q.l)):
+                continue
+            pi, pj, pk, pl = rq[q.i], rq[q.j], rq[q.k], rq[q.l]
+            if orient_fixed(pi, pj, pk) * orient_fixed(pi, pj, pl) >= 0:
+                continue
+            if orient_fixed(pk, pl, pi) * orient_fixed(pk, pl, pj) >= 0:
+                continue
+            before = sum(_moving_sign(mesh, s) <= 0 for s in q.slots)
+            after = 0
+            for t in q.swapped_triangles():
+                r = orient_fixed(rq[t[0]], rq[t[1]], rq[t[2]])
+                m = orient_fixed(mq[t[0]], mq[t[1]], mq[t[2]])
+                after += r != m
+            if after < before and (best is None or after < best[0]):
+                best = (after, e)
+        if best is None:
+            mesh.remove_triangle(slot)
+            actions.append(
+                {
+                    "action": "remove",
+                    "triangle": [a, b, c],
+                    "reason": "no swap removes the reversal",
+                }
+            )
+            continue
+        added = mesh.swap(best[1], check=False)
+        actions.append({"action": "swap", "removed": list(best[1]), "added": list(added)})
+    return actions, len(mesh.reversed_slots())
+
+
+def _moving_sign(mesh: Mesh, slot: int) -> int:
+    a, b, c = mesh.triangle(slot)
+    return orient_fixed(mesh.mov_fixed[a], mesh.mov_fixed[b], mesh.mov_fixed[c])
+
+
+def initial_mesh(
+    reference_points: np.ndarray, moving_points: np.ndarray, min_triangle_area: float
+) -> tuple[Mesh, TriangulationReport]:
+    """Build the mesh the search starts from.
+
+    Delaunay triangulation of the reference points (duplicates removed), the same triangles on
+    the moving points, triangles with reference area below ``min_triangle_area`` (px^2)
+    discarded, then patch reversals repaired (:func:`repair_patch_reversals`).
+    """
+    ref, mov, dropped = deduplicate(reference_points, moving_points)
+    tris = delaunay_triangles(ref)
+    areas = triangle_areas(ref[tris])
+    keep = (areas >= min_triangle_area) & (areas > 0)
+    report = TriangulationReport(duplicates_removed=dropped)
+    report.small_triangles_removed = int((~keep).sum())
+    mesh = Mesh(ref, mov, tris[keep])
+    report.repairs, report.unrepaired = repair_patch_reversals(mesh)
+    if mesh.n_triangles == 0:
+        raise InputError(
+            "no triangle is left after removing small triangles and patch reversals; send more "
+            "or better spread points, or lower min_triangle_area",
+            "points",
+        )
+    return mesh, report
