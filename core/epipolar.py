@@ -1,0 +1,417 @@
+"""Robust epipolar geometry of two views: the outlier filter of conjugate points.
+
+Two models are offered.
+
+* **Affine** fundamental matrix (the paper's; Hartley & Zisserman, *Multiple View Geometry*,
+  2nd ed., ch. 14). For affine cameras ``F_A = [[0, 0, a], [0, 0, b], [c, d, e]]`` and every
+  pair satisfies ``a x' + b y' + c x + d y + e = 0``: a hyperplane in the 4-D space
+  ``(x', y', x, y)``. The Gold Standard error of a pair is its perpendicular distance to that
+  hyperplane (the smallest joint displacement of both points, in pixels, that makes the pair
+  consistent); 4 pairs in general position are a minimal sample; the maximum-likelihood fit of
+  many pairs is the total-least-squares hyperplane (H&Z Algorithm 14.1). It is estimated here by
+  MSAC with an adaptive number of iterations (many minimal samples evaluated at once with numpy),
+  then refitted on its inliers.
+* **Projective** fundamental matrix (perspective cameras), estimated with OpenCV's USAC
+  framework (MAGSAC++ scoring, local optimisation, final polishing); the error of a pair is its
+  Sampson distance, the first-order approximation of the same Gold Standard error.
+
+Conventions: ``ref`` and ``mov`` are ``(N, 2)`` arrays of pixel coordinates in the reference and
+moving images (x to the right, y down, (0, 0) at the centre of the top-left pixel). A fundamental
+matrix ``F`` satisfies ``x_mov^T F x_ref = 0`` with homogeneous ``x = (x, y, 1)``; this is
+OpenCV's ``findFundamentalMat(ref, mov)`` convention. Residuals are in pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from core.errors import InputError
+
+#: Fewest pairs each model is estimated from: a minimal sample plus at least two pairs that can
+#: vote against a wrong sample (affine: 4 + 2; projective: 7 + 3, OpenCV needs 8 for polishing).
+MIN_PAIRS = {"affine": 6, "projective": 10}
+
+EpipolarKind = Literal["affine", "projective"]
+
+
+@dataclass(frozen=True)
+class EpipolarModel:
+    """An estimated epipolar geometry and the statistics of its robust fit.
+
+    Attributes
+    ----------
+    kind : {"affine", "projective"}
+        Camera model.
+    matrix : np.ndarray
+        (3, 3) fundamental matrix with ``x_mov^T F x_ref = 0``. Affine models are scaled so that
+        ``a^2 + b^2 + c^2 + d^2 = 1`` (then ``x_mov^T F x_ref`` is the signed Gold Standard
+        distance); projective models have unit Frobenius norm.
+    threshold : float
+        Inlier threshold used in the fit, pixels.
+    num_pairs : int
+        Number of pairs the model was estimated from.
+    num_inliers : int
+        Pairs whose residual is at most ``threshold``.
+    iterations : int
+        Number of minimal samples drawn (affine) or reported 0 when OpenCV does not say.
+    rms : float
+        Root mean square residual of the inliers, pixels.
+    """
+
+    kind: EpipolarKind
+    matrix: np.ndarray
+    threshold: float
+    num_pairs: int
+    num_inliers: int
+    iterations: int
+    rms: float
+
+    def residuals(self, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
+        """Residual of each pair, pixels.
+
+        Affine: the perpendicular (Gold Standard) distance to the hyperplane, exact. Projective:
+        the Sampson distance. Both are joint displacements of the two points, so they share a
+        threshold scale.
+        """
+        return sampson_distance(self.matrix, ref, mov)
+
+    def inliers(self, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
+        """Boolean mask of the pairs whose residual is at most :attr:`threshold`."""
+        return self.residuals(ref, mov) <= self.threshold
+
+    def to_dict(self) -> dict:
+        """JSON-able summary (``matrix`` as nested lists, convention ``x_mov^T F x_ref = 0``)."""
+        return {
+            "kind": self.kind,
+            "matrix": [[float(v) for v in row] for row in self.matrix],
+            "convention": "x_moving^T F x_reference = 0, pixels, (0,0) = centre of top-left pixel",
+            "threshold_px": float(self.threshold),
+            "num_pairs": int(self.num_pairs),
+            "num_inliers": int(self.num_inliers),
+            "iterations": int(self.iterations),
+            "rms_px": float(self.rms),
+        }
+
+
+def sampson_distance(F: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
+    """Sampson distance of each pair to ``x_mov^T F x_ref = 0``, pixels.
+
+    ``|x'^T F x| / sqrt((F x)_1^2 + (F x)_2^2 + (F^T x')_1^2 + (F^T x')_2^2)``. For an affine
+    ``F`` the constraint is linear in ``(x', y', x, y)`` and this is exactly the perpendicular
+    distance to its hyperplane.
+
+    Parameters
+    ----------
+    F : np.ndarray
+        (3, 3) fundamental matrix.
+    ref, mov : np.ndarray
+        (N, 2) pixel coordinates in the reference and moving images.
+
+    Returns
+    -------
+    np.ndarray
+        (N,) float64 distances (``inf`` where the denominator vanishes).
+    """
+    ref = np.asarray(ref, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(mov, dtype=np.float64).reshape(-1, 2)
+    F = np.asarray(F, dtype=np.float64)
+    Fx = ref @ F[:, :2].T + F[:, 2]  # (N, 3) = F [x, y, 1]^T
+    Ftxp = mov @ F[:2, :] + F[2, :]  # (N, 3) = F^T [x', y', 1]^T
+    num = np.abs(np.sum(mov * Fx[:, :2], axis=1) + Fx[:, 2])
+    den = np.sqrt(Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftxp[:, 0] ** 2 + Ftxp[:, 1] ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = num / den
+    return np.where(den > 0, d, np.inf)
+
+
+# --- affine model ---------------------------------------------------------------------------------
+
+
+def _stack(ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
+    """(N, 4) points ``(x', y', x, y)`` of the joint image space."""
+    ref = np.asarray(ref, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(mov, dtype=np.float64).reshape(-1, 2)
+    if len(ref) != len(mov):
+        raise InputError(f"{len(ref)} reference points but {len(mov)} moving points", "points")
+    return np.hstack([mov, ref])
+
+
+def _affine_matrix(normal: np.ndarray, offset: float) -> np.ndarray:
+    """``F_A`` of the hyperplane ``normal . (x', y', x, y) + offset = 0``."""
+    a, b, c, d = normal
+    return np.array([[0.0, 0.0, a], [0.0, 0.0, b], [c, d, offset]])
+
+
+def _tls_hyperplane(X: np.ndarray) -> tuple[np.ndarray, float]:
+    """Total-least-squares hyperplane of (N, 4) points: unit normal and offset."""
+    centroid = X.mean(axis=0)
+    _, _, vt = np.linalg.svd(X - centroid, full_matrices=False)
+    normal = vt[-1]
+    return normal, -float(normal @ centroid)
+
+
+def fit_affine_fundamental(ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
+    """Least-squares affine fundamental matrix of (at least 4) pairs, no outlier rejection.
+
+    Minimises the sum of squared Gold Standard distances (total least squares of the points
+    ``(x', y', x, y)``; Hartley & Zisserman Algorithm 14.1).
+
+    Parameters
+    ----------
+    ref, mov : np.ndarray
+        (N, 2) pixel coordinates, N >= 4.
+
+    Returns
+    -------
+    np.ndarray
+        (3, 3) ``F_A`` with ``x_mov^T F_A x_ref = 0`` and ``a^2 + b^2 + c^2 + d^2 = 1``.
+    """
+    X = _stack(ref, mov)
+    if len(X) < 4:
+        raise InputError(f"an affine fundamental matrix needs at least 4 pairs, got {len(X)}")
+    normal, offset = _tls_hyperplane(X)
+    return _affine_matrix(normal, offset)
+
+
+def _sample_hyperplanes(X: np.ndarray, samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hyperplanes through each 4-point sample, vectorised.
+
+    ``X`` is (N, 4) (centred and scaled), ``samples`` (S, 4) indices. Returns unit normals (S, 4)
+    and offsets (S,); degenerate samples (points not spanning a hyperplane) get a zero normal.
+    """
+    P = X[samples]  # (S, 4, 4)
+    D = P[:, 1:, :] - P[:, :1, :]  # (S, 3, 4) spanning directions
+    # Generalised cross product: n_k = (-1)^k det(D without column k).
+    cols = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    minors = D[:, :, cols]  # (S, 3, 4, 3)
+    minors = np.moveaxis(minors, 2, 1)  # (S, 4, 3, 3)
+    n = np.linalg.det(minors) * np.array([1.0, -1.0, 1.0, -1.0])
+    norm = np.linalg.norm(n, axis=1)
+    # Relative degeneracy test: the volume spanned versus the product of the edge lengths.
+    scale = np.prod(np.linalg.norm(D, axis=2), axis=1)
+    good = norm > 1e-6 * np.maximum(scale, 1e-300)
+    n = np.where(good[:, None], n / np.where(norm > 0, norm, 1.0)[:, None], 0.0)
+    offset = -np.einsum("sk,sk->s", n, P[:, 0, :])
+    return n, offset
+
+
+def _required_iterations(inlier_ratio: float, confidence: float, sample_size: int) -> float:
+    """Samples needed to draw one all-inlier sample with the given confidence."""
+    p_good = inlier_ratio**sample_size
+    if p_good <= 0.0:
+        return math.inf
+    if p_good >= 1.0:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(1.0 - p_good)
+
+
+def estimate_affine_fundamental(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    threshold: float = 1.5,
+    seed: int = 0,
+    confidence: float = 0.999,
+    max_iterations: int = 10_000,
+    batch: int = 128,
+) -> EpipolarModel:
+    """Robust affine fundamental matrix: MSAC with adaptive iterations, then inlier refit.
+
+    Minimal samples of 4 pairs are drawn ``batch`` at a time; each defines the hyperplane through
+    its 4 points in ``(x', y', x, y)`` and is scored by the MSAC cost
+    ``sum(min(r_i^2, threshold^2))`` over all pairs (r = perpendicular distance). Sampling stops
+    once the best model's inlier ratio ``w`` makes one more all-inlier sample unlikely
+    (``iterations >= log(1 - confidence) / log(1 - w^4)``) or at ``max_iterations``. The best
+    model is then refitted by total least squares on its inliers, repeatedly until the inlier
+    set stops changing (at most 10 times).
+
+    Parameters
+    ----------
+    ref, mov : np.ndarray
+        (N, 2) pixel coordinates of the pairs, N >= 6 (:data:`MIN_PAIRS`).
+    threshold : float
+        Inlier threshold on the Gold Standard distance, pixels.
+    seed : int
+        Seed of the sampler; the same input and seed give the same model.
+    confidence : float
+        Probability of having drawn at least one all-inlier sample.
+    max_iterations : int
+        Upper bound on the number of minimal samples.
+    batch : int
+        Samples evaluated together (memory ``batch * N`` floats).
+
+    Returns
+    -------
+    EpipolarModel
+        ``kind="affine"``; call :meth:`EpipolarModel.inliers` for the inlier mask.
+    """
+    X = _stack(ref, mov)
+    n_pairs = len(X)
+    if n_pairs < MIN_PAIRS["affine"]:
+        raise InputError(
+            f"the affine epipolar filter needs at least {MIN_PAIRS['affine']} pairs, got {n_pairs}",
+            "points",
+        )
+    if not np.all(np.isfinite(X)):
+        raise InputError("point coordinates must be finite", "points")
+    # Isotropic normalisation (same shift and scale for all four coordinates keeps distances).
+    centre = X.mean(axis=0)
+    spread = float(np.sqrt(np.mean(np.sum((X - centre) ** 2, axis=1)))) or 1.0
+    Xn = (X - centre) / spread
+    tn2 = (threshold / spread) ** 2
+
+    rng = np.random.default_rng(seed)
+    best_cost = math.inf
+    best: tuple[np.ndarray, float] | None = None
+    needed = float(max_iterations)
+    done = 0
+    while done < min(needed, max_iterations):
+        k = int(min(batch, max_iterations - done))
+        samples = rng.integers(0, n_pairs, size=(k, 4))
+        s = np.sort(samples, axis=1)
+        distinct = np.all(s[:, 1:] != s[:, :-1], axis=1)
+        done += k
+        samples = samples[distinct]
+        if len(samples) == 0:
+            continue
+        normals, offsets = _sample_hyperplanes(Xn, samples)
+        ok = np.any(normals != 0.0, axis=1)
+        if not np.any(ok):
+            continue
+        normals, offsets = normals[ok], offsets[ok]
+        r2 = (Xn @ normals.T + offsets) ** 2  # (N, S)
+        cost = np.minimum(r2, tn2).sum(axis=0)
+        i = int(np.argmin(cost))
+        if cost[i] < best_cost:
+            best_cost = float(cost[i])
+            best = (normals[i], float(offsets[i]))
+            w = float(np.count_nonzero(r2[:, i] <= tn2)) / n_pairs
+            needed = _required_iterations(w, confidence, 4)
+    if best is None:
+        raise InputError("the point pairs are degenerate: no 4 of them span a hyperplane", "points")
+
+    normal, offset = best
+    inl = np.abs(Xn @ normal + offset) ** 2 <= tn2
+    for _ in range(10):
+        if np.count_nonzero(inl) < 4:
+            break
+        cand_normal, cand_offset = _tls_hyperplane(Xn[inl])
+        cand_r2 = (Xn @ cand_normal + cand_offset) ** 2
+        cand_cost = float(np.minimum(cand_r2, tn2).sum())
+        cand_inl = cand_r2 <= tn2
+        if cand_cost > best_cost:
+            break
+        best_cost, normal, offset = cand_cost, cand_normal, cand_offset
+        if np.array_equal(cand_inl, inl):
+            break
+        inl = cand_inl
+
+    # Back to pixels: n . (X - c) / s + o = 0  <=>  n . X + (s o - n . c) = 0.
+    offset_px = spread * offset - float(normal @ centre)
+    matrix = _affine_matrix(normal, offset_px)
+    return _finish("affine", matrix, threshold, ref, mov, done)
+
+
+# --- projective model -----------------------------------------------------------------------------
+
+
+def estimate_projective_fundamental(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    threshold: float = 1.5,
+    seed: int = 0,
+    confidence: float = 0.999,
+    max_iterations: int = 10_000,
+) -> EpipolarModel:
+    """Robust projective fundamental matrix with OpenCV's USAC (MAGSAC++ score, polished).
+
+    Parameters
+    ----------
+    ref, mov : np.ndarray
+        (N, 2) pixel coordinates, N >= 10 (:data:`MIN_PAIRS`).
+    threshold : float
+        Inlier threshold on the Sampson distance, pixels.
+    seed : int
+        State of OpenCV's random generator; the same input and seed give the same model.
+    confidence : float
+        Confidence of the adaptive stopping rule.
+    max_iterations : int
+        Upper bound on the number of minimal samples.
+
+    Returns
+    -------
+    EpipolarModel
+        ``kind="projective"``, unit Frobenius norm.
+    """
+    X = _stack(ref, mov)
+    n_pairs = len(X)
+    if n_pairs < MIN_PAIRS["projective"]:
+        raise InputError(
+            f"the projective epipolar filter needs at least {MIN_PAIRS['projective']} pairs, "
+            f"got {n_pairs}",
+            "points",
+        )
+    if not np.all(np.isfinite(X)):
+        raise InputError("point coordinates must be finite", "points")
+    params = cv2.UsacParams()
+    params.threshold = float(threshold)
+    params.confidence = float(confidence)
+    params.maxIterations = int(max_iterations)
+    params.randomGeneratorState = int(seed)
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.loIterations = 10
+    params.loSampleSize = 50
+    params.final_polisher = cv2.MAGSAC
+    params.final_polisher_iterations = 10
+    params.isParallel = False
+    r = np.ascontiguousarray(X[:, 2:], dtype=np.float64)
+    m = np.ascontiguousarray(X[:, :2], dtype=np.float64)
+    F, _ = cv2.findFundamentalMat(r, m, params)
+    if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
+        raise InputError("no projective fundamental matrix fits the point pairs", "points")
+    F = F / np.linalg.norm(F)
+    return _finish("projective", F, threshold, ref, mov, 0)
+
+
+def estimate_fundamental(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    kind: EpipolarKind = "affine",
+    threshold: float = 1.5,
+    seed: int = 0,
+) -> EpipolarModel:
+    """Robust fundamental matrix of the given kind (see :func:`estimate_affine_fundamental` and
+    :func:`estimate_projective_fundamental`)."""
+    if kind == "affine":
+        return estimate_affine_fundamental(ref, mov, threshold=threshold, seed=seed)
+    if kind == "projective":
+        return estimate_projective_fundamental(ref, mov, threshold=threshold, seed=seed)
+    raise InputError(f"unknown epipolar model {kind!r}", "options.epipolar_model")
+
+
+def _finish(
+    kind: EpipolarKind,
+    matrix: np.ndarray,
+    threshold: float,
+    ref: np.ndarray,
+    mov: np.ndarray,
+    iterations: int,
+) -> EpipolarModel:
+    r = sampson_distance(matrix, ref, mov)
+    inl = r <= threshold
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if np.any(inl) else math.nan
+    return EpipolarModel(
+        kind=kind,
+        matrix=matrix,
+        threshold=float(threshold),
+        num_pairs=len(r),
+        num_inliers=int(np.count_nonzero(inl)),
+        iterations=int(iterations),
+        rms=rms,
+    )

@@ -1,0 +1,736 @@
+"""Conjugate points: automatic matching, validation of client points, outlier filter, spread.
+
+Two matchers find pairs when the client sends none.
+
+* ``"lk"`` (the paper's): Harris corners in the reference image, tracked into the moving image by
+  pyramidal Lucas-Kanade (Bouguet) with a forward-backward consistency check. To survive
+  viewpoint changes larger than the LK search range, a global homography is first estimated by
+  the same tracker on a coarse pyramid level (at most :data:`COARSE_SIDE` pixels), the moving
+  image is warped into the reference frame by it, and the full-resolution tracking then only
+  recovers the residual (parallax) motion; tracked points are mapped back through the
+  homography, so the pairs keep full-resolution sub-pixel accuracy. Both images are histogram
+  equalised before tracking, which makes LK tolerate global monotonic lighting changes.
+* ``"sift"`` (wide baseline): SIFT keypoints (OpenCV) in both images, Lowe's ratio test and a
+  mutual nearest-neighbour check.
+
+``"auto"`` runs ``"lk"`` and falls back to ``"sift"`` when fewer than
+:data:`AUTO_MIN_CONSISTENT` tracked pairs pass the epipolar filter (or fewer than half of
+the forward-backward consistent tracks do, the sign of a wrong global prior); it keeps whichever
+result has more consistent pairs.
+
+Every pair list then goes through the robust epipolar filter (:mod:`core.epipolar`) and, for
+automatic matches only, a spatial suppression that keeps the strongest pairs with a minimum
+distance between reference points and at most ``max_points`` of them, spread over the overlap
+by a grid.
+
+Conventions: images are OpenCV arrays (grey ``(H, W)`` or BGR(A) ``(H, W, C)``, uint8 or
+uint16); matching runs on their 8-bit luminance (:func:`core.imaging.to_gray8`). Point arrays are
+``(N, 2)`` float64 pixel coordinates, x to the right, y down, (0, 0) at the centre of the
+top-left pixel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
+from core.errors import InputError, NotEnoughPointsError
+from core.imaging import check_image, to_gray8
+from core.options import RegistrationOptions
+
+#: Pairs needed for a mesh (one triangle).
+MIN_MESH_PAIRS = 3
+
+#: ``auto`` falls back to SIFT when fewer tracked pairs than this pass the epipolar filter. A
+#: mesh of about 100 well-spread vertices (roughly 180 triangles) is the smallest that still
+#: follows the planes of a building-sized scene; below it, SIFT usually does better.
+AUTO_MIN_CONSISTENT = 100
+
+#: ``auto`` also falls back when fewer than this share of the forward-backward consistent tracks
+#: pass the epipolar filter: good tracks are consistent with one epipolar geometry.
+AUTO_MIN_INLIER_SHARE = 0.5
+
+#: Longer side (pixels) of the coarse level on which the global prior is tracked.
+COARSE_SIDE = 512
+
+#: Longer side (pixels) above which corners are detected on a pyramid level (then refined at
+#: full resolution) and SIFT runs on a pyramid level.
+DETECT_SIDE = 2048
+
+#: Tolerance (pixels) beyond the image border for client points.
+BORDER_TOLERANCE = 1.0
+
+
+@dataclass(frozen=True)
+class ConjugatePoints:
+    """Conjugate point pairs kept for the mesh and how they were obtained.
+
+    Attributes
+    ----------
+    reference : np.ndarray
+        (N, 2) float64 kept points, reference image pixels.
+    moving : np.ndarray
+        (N, 2) float64 matching points, moving image pixels.
+    source : str
+        ``"client"``, ``"lk"`` or ``"sift"``.
+    counts : dict of str to int
+        Pairs left after each stage, in order. Automatic: ``detected`` (reference corners or
+        keypoints), ``tracked`` / ``matched``, ``consistent`` (forward-backward check, or ratio
+        and mutual checks), ``epipolar`` (epipolar inliers), ``kept``. Client: ``given``,
+        ``valid``, ``epipolar``, ``kept``. When ``auto`` fell back to SIFT, the tracker's own
+        numbers are kept with an ``lk_`` prefix.
+    rejected : dict of str to int
+        Reason -> number of pairs rejected for it (``"lost"``, ``"outside image"``,
+        ``"forward-backward"``, ``"ratio test"``, ``"mutual check"``, ``"not finite"``,
+        ``"duplicate"``, ``"epipolar"``, ``"spread"``).
+    epipolar : EpipolarModel or None
+        The estimated epipolar geometry; None when the filter is off.
+    residuals : np.ndarray
+        (N,) epipolar residual of each kept pair, pixels (NaN when the filter is off).
+    """
+
+    reference: np.ndarray
+    moving: np.ndarray
+    source: str
+    counts: dict[str, int]
+    rejected: dict[str, int]
+    epipolar: EpipolarModel | None
+    residuals: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.reference)
+
+    def to_dict(self) -> dict:
+        """JSON-able record (lists and floats; NaN residuals become None)."""
+        return {
+            "source": self.source,
+            "num_pairs": len(self.reference),
+            "counts": {k: int(v) for k, v in self.counts.items()},
+            "rejected": {k: int(v) for k, v in self.rejected.items()},
+            "epipolar": None if self.epipolar is None else self.epipolar.to_dict(),
+            "reference": [[float(x), float(y)] for x, y in self.reference],
+            "moving": [[float(x), float(y)] for x, y in self.moving],
+            "residuals_px": [None if math.isnan(r) else float(r) for r in self.residuals],
+        }
+
+
+@dataclass
+class Matches:
+    """Candidate pairs from one matcher, before the epipolar filter and the spread step.
+
+    Attributes
+    ----------
+    reference, moving : np.ndarray
+        (N, 2) float64 pixel coordinates.
+    score : np.ndarray
+        (N,) strength, larger is better (used to choose among close points).
+    source : str
+        ``"lk"`` or ``"sift"``.
+    counts, rejected : dict of str to int
+        Stage counts and rejections so far (see :class:`ConjugatePoints`).
+    """
+
+    reference: np.ndarray
+    moving: np.ndarray
+    score: np.ndarray
+    source: str
+    counts: dict[str, int] = field(default_factory=dict)
+    rejected: dict[str, int] = field(default_factory=dict)
+
+    def subset(self, keep: np.ndarray) -> Matches:
+        """Same matches restricted to a boolean mask or index array."""
+        return Matches(
+            self.reference[keep], self.moving[keep], self.score[keep], self.source,
+            dict(self.counts), dict(self.rejected),
+        )
+
+
+# --- small image helpers ------------------------------------------------------------------------
+
+
+def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
+    """Halve ``gray`` (Gaussian pyramid) until its longer side is at most ``max_side``.
+
+    Returns the level and its scale factor ``s`` (level pixel = ``s`` * full pixel; pyrDown
+    keeps (0, 0) at the centre of the top-left pixel up to ``(s - 1) / 2``, corrected by the
+    callers through :func:`_to_level` / :func:`_from_level`).
+    """
+    scale = 1.0
+    while max(gray.shape) > max_side:
+        gray = cv2.pyrDown(gray)
+        scale *= 0.5
+    return gray, scale
+
+
+def _to_level(points: np.ndarray, scale: float) -> np.ndarray:
+    """Full-resolution pixel coordinates -> pyramid level coordinates (pixel-centre convention)."""
+    return (points + 0.5) * scale - 0.5
+
+
+def _from_level(points: np.ndarray, scale: float) -> np.ndarray:
+    """Pyramid level coordinates -> full-resolution pixel coordinates."""
+    return (points + 0.5) / scale - 0.5
+
+
+def _pad_to(gray: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Pad ``gray`` with zeros at the bottom and right to ``shape`` (no-op if it is that big)."""
+    dh, dw = shape[0] - gray.shape[0], shape[1] - gray.shape[1]
+    if dh == 0 and dw == 0:
+        return gray
+    return cv2.copyMakeBorder(gray, 0, dh, 0, dw, cv2.BORDER_CONSTANT, value=0)
+
+
+def _inside(points: np.ndarray, shape: tuple[int, ...], margin: float = 0.0) -> np.ndarray:
+    """Mask of the points inside ``[-0.5 - margin, size - 0.5 + margin]`` in x and y."""
+    h, w = shape[:2]
+    x, y = points[:, 0], points[:, 1]
+    return (
+        np.isfinite(x) & np.isfinite(y)
+        & (x >= -0.5 - margin) & (x <= w - 0.5 + margin)
+        & (y >= -0.5 - margin) & (y <= h - 0.5 + margin)
+    )
+
+
+def _apply_h(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points through a 3x3 homography."""
+    q = points @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return q[:, :2] / q[:, 2:3]
+
+
+_LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+
+
+def _lk_pair(
+    a: np.ndarray, b: np.ndarray, points: np.ndarray, win: int, levels: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Track ``points`` from ``a`` to ``b`` and back with pyramidal LK (same-size images).
+
+    Returns the tracked points (N, 2), a success mask (both directions converged) and the
+    forward-backward error (N,) in pixels of ``a``.
+    """
+    if len(points) == 0:
+        return np.empty((0, 2)), np.zeros(0, bool), np.empty(0)
+    p0 = points.astype(np.float32).reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+        a, b, p0, None, winSize=(win, win), maxLevel=levels, criteria=_LK_CRITERIA
+    )
+    p2, st2, _ = cv2.calcOpticalFlowPyrLK(
+        b, a, p1, None, winSize=(win, win), maxLevel=levels, criteria=_LK_CRITERIA
+    )
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1)
+    fb = np.linalg.norm((p2 - p0).reshape(-1, 2), axis=1).astype(np.float64)
+    return p1.reshape(-1, 2).astype(np.float64), ok, fb
+
+
+# --- matcher 1: Harris + pyramidal Lucas-Kanade ---------------------------------------------------
+
+
+def detect_corners(
+    gray: np.ndarray, max_corners: int, min_distance: float, quality: float = 0.001
+) -> np.ndarray:
+    """Harris corners, strongest first, with sub-pixel positions at full resolution.
+
+    On images whose longer side exceeds :data:`DETECT_SIDE` the corners are detected on the
+    first pyramid level below it and refined at full resolution with ``cv2.cornerSubPix``.
+
+    Parameters
+    ----------
+    gray : np.ndarray
+        8-bit grey image.
+    max_corners : int
+        Most corners returned.
+    min_distance : float
+        Minimum distance between corners, full-resolution pixels.
+    quality : float
+        Weakest corner kept, as a fraction of the strongest Harris response.
+
+    Returns
+    -------
+    np.ndarray
+        (N, 2) float64 corner positions, sorted by decreasing Harris response.
+    """
+    level, scale = _downscale(gray, DETECT_SIDE)
+    corners = cv2.goodFeaturesToTrack(
+        level, maxCorners=int(max_corners), qualityLevel=quality,
+        minDistance=max(1.0, min_distance * scale), blockSize=3, useHarrisDetector=True, k=0.04,
+    )
+    if corners is None:
+        return np.empty((0, 2))
+    pts = _from_level(corners.reshape(-1, 2).astype(np.float64), scale)
+    h, w = gray.shape
+    # cornerSubPix needs the search window inside the image.
+    pts = pts[(pts[:, 0] >= 6) & (pts[:, 0] <= w - 7) & (pts[:, 1] >= 6) & (pts[:, 1] <= h - 7)]
+    if len(pts):
+        refined = cv2.cornerSubPix(
+            gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
+            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
+        ).reshape(-1, 2).astype(np.float64)
+        # A refinement that wanders far means no well-defined corner there: keep the detection.
+        moved = np.linalg.norm(refined - pts, axis=1) > 2.0 / scale
+        pts = np.where(moved[:, None], pts, refined)
+    return pts
+
+
+def estimate_global_prior(
+    ref_gray: np.ndarray, mov_gray: np.ndarray, seed: int = 0, min_inliers: int = 12
+) -> np.ndarray | None:
+    """Global homography reference -> moving tracked on a coarse pyramid level.
+
+    Harris corners of the coarse reference level (longer side at most :data:`COARSE_SIDE`) are
+    tracked into the coarse moving level by pyramidal LK with a forward-backward check, and a
+    homography is fitted to them with OpenCV's USAC.
+
+    Parameters
+    ----------
+    ref_gray, mov_gray : np.ndarray
+        8-bit grey images (already photometrically normalised if needed), any sizes.
+    seed : int
+        Seed of the robust fit.
+    min_inliers : int
+        Fewest inliers for the homography to be trusted.
+
+    Returns
+    -------
+    np.ndarray or None
+        (3, 3) homography in full-resolution pixels (``x_mov ~ H x_ref``), or None when the
+        coarse tracking does not support one.
+    """
+    a, sa = _downscale(ref_gray, COARSE_SIDE)
+    b, sb = _downscale(mov_gray, COARSE_SIDE)
+    shape = (max(a.shape[0], b.shape[0]), max(a.shape[1], b.shape[1]))
+    corners = detect_corners(a, 500, 5.0, quality=0.005)
+    if len(corners) < min_inliers:
+        return None
+    tracked, ok, fb = _lk_pair(_pad_to(a, shape), _pad_to(b, shape), corners, 21, 4)
+    ok &= (fb < 0.5) & _inside(tracked, b.shape)
+    if np.count_nonzero(ok) < min_inliers:
+        return None
+    src = _from_level(corners[ok], sa)
+    dst = _from_level(tracked[ok], sb)
+    params = cv2.UsacParams()
+    params.threshold = 2.0 / sb
+    params.confidence = 0.999
+    params.maxIterations = 2000
+    params.randomGeneratorState = int(seed)
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MSAC
+    params.loMethod = cv2.LOCAL_OPTIM_INNER_LO
+    params.loIterations = 10
+    params.loSampleSize = 14
+    params.final_polisher = cv2.LSQ_POLISHER
+    params.final_polisher_iterations = 3
+    params.isParallel = False
+    H, mask = cv2.findHomography(src, dst, params)
+    if H is None or mask is None or int(mask.sum()) < min_inliers:
+        return None
+    return H / H[2, 2]
+
+
+def match_lk(
+    ref_gray: np.ndarray,
+    mov_gray: np.ndarray,
+    max_candidates: int,
+    min_distance: float,
+    fb_threshold: float = 0.5,
+    seed: int = 0,
+    win: int = 21,
+    levels: int = 3,
+) -> Matches:
+    """Harris corners tracked by pyramidal Lucas-Kanade with a forward-backward check.
+
+    Parameters
+    ----------
+    ref_gray, mov_gray : np.ndarray
+        8-bit grey images, any sizes.
+    max_candidates : int
+        Corners detected in the reference image.
+    min_distance : float
+        Minimum distance between detected corners, pixels.
+    fb_threshold : float
+        Largest forward-backward error (pixels, reference image) of a consistent track.
+    seed : int
+        Seed of the global prior's robust fit.
+    win, levels : int
+        LK window side (pixels) and number of pyramid levels above full resolution.
+
+    Returns
+    -------
+    Matches
+        ``source="lk"``; score = Harris rank (strongest highest).
+    """
+    a = cv2.equalizeHist(ref_gray)
+    b = cv2.equalizeHist(mov_gray)
+    H = estimate_global_prior(a, b, seed=seed)
+    if H is None:
+        H = np.eye(3)
+    h, w = a.shape
+    # Moving image resampled into the reference frame: warped(x) = moving(H x).
+    warped = cv2.warpPerspective(
+        b, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+    )
+    counts: dict[str, int] = {}
+    rejected: dict[str, int] = {}
+    corners = detect_corners(ref_gray, max_candidates, min_distance)
+    counts["detected"] = len(corners)
+    score = np.linspace(1.0, 0.0, len(corners), endpoint=False) if len(corners) else np.empty(0)
+    # Corners whose prior position falls outside the moving image cannot be tracked.
+    inside = _inside(_apply_h(H, corners), mov_gray.shape, margin=-2.0)
+    rejected["outside image"] = int(np.count_nonzero(~inside))
+    corners, score = corners[inside], score[inside]
+    tracked, ok, fb = _lk_pair(a, warped, corners, win, levels)
+    moving = _apply_h(H, tracked)
+    ok_in = ok & _inside(moving, mov_gray.shape)
+    rejected["lost"] = int(np.count_nonzero(~ok))
+    rejected["outside image"] += int(np.count_nonzero(ok & ~ok_in))
+    counts["tracked"] = int(np.count_nonzero(ok_in))
+    good = ok_in & (fb <= fb_threshold)
+    rejected["forward-backward"] = int(np.count_nonzero(ok_in & ~good))
+    counts["consistent"] = int(np.count_nonzero(good))
+    return Matches(corners[good], moving[good], score[good], "lk", counts, rejected)
+
+
+# --- matcher 2: SIFT ------------------------------------------------------------------------------
+
+
+def match_sift(
+    ref_gray: np.ndarray,
+    mov_gray: np.ndarray,
+    max_features: int,
+    ratio: float = 0.8,
+) -> Matches:
+    """SIFT keypoints matched with Lowe's ratio test and a mutual nearest-neighbour check.
+
+    Images whose longer side exceeds :data:`DETECT_SIDE` are processed on the first pyramid level
+    below it (SIFT's cost grows quickly with size); coordinates are returned at full resolution.
+
+    Parameters
+    ----------
+    ref_gray, mov_gray : np.ndarray
+        8-bit grey images, any sizes.
+    max_features : int
+        Most keypoints per image (the strongest).
+    ratio : float
+        Largest ratio of the best to the second-best descriptor distance.
+
+    Returns
+    -------
+    Matches
+        ``source="sift"``; score = ``1 - ratio`` of the match.
+    """
+    a, sa = _downscale(ref_gray, DETECT_SIDE)
+    b, sb = _downscale(mov_gray, DETECT_SIDE)
+    sift = cv2.SIFT_create(nfeatures=int(max_features))
+    ka, da = sift.detectAndCompute(a, None)
+    kb, db = sift.detectAndCompute(b, None)
+    counts = {"detected": len(ka), "detected_moving": len(kb)}
+    rejected: dict[str, int] = {}
+    empty = Matches(np.empty((0, 2)), np.empty((0, 2)), np.empty(0), "sift", counts, rejected)
+    if da is None or db is None or len(ka) < 2 or len(kb) < 2:
+        counts.update(matched=0, consistent=0)
+        return empty
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(da, db, k=2)
+    qi = np.array([m[0].queryIdx for m in knn if len(m) == 2])
+    ti = np.array([m[0].trainIdx for m in knn if len(m) == 2])
+    d1 = np.array([m[0].distance for m in knn if len(m) == 2])
+    d2 = np.array([m[1].distance for m in knn if len(m) == 2])
+    passed = d1 < ratio * d2
+    rejected["ratio test"] = int(np.count_nonzero(~passed))
+    counts["matched"] = int(np.count_nonzero(passed))
+    back = matcher.match(db, da)
+    best_back = np.full(len(kb), -1)
+    best_back[[m.queryIdx for m in back]] = [m.trainIdx for m in back]
+    mutual = passed & (best_back[ti] == qi)
+    rejected["mutual check"] = int(np.count_nonzero(passed & ~mutual))
+    counts["consistent"] = int(np.count_nonzero(mutual))
+    pa = np.array([kp.pt for kp in ka], dtype=np.float64).reshape(-1, 2)
+    pb = np.array([kp.pt for kp in kb], dtype=np.float64).reshape(-1, 2)
+    ref = _from_level(pa[qi[mutual]], sa)
+    mov = _from_level(pb[ti[mutual]], sb)
+    score = 1.0 - d1[mutual] / np.maximum(d2[mutual], 1e-12)
+    return Matches(ref, mov, score, "sift", counts, rejected)
+
+
+# --- spread ---------------------------------------------------------------------------------------
+
+
+def spread_points(
+    points: np.ndarray, score: np.ndarray, max_points: int, min_distance: float
+) -> np.ndarray:
+    """Choose well-spread, strong points: minimum distance, then grid-based thinning.
+
+    1. Greedy suppression, strongest first: a point closer than ``min_distance`` to a kept
+       point is dropped (exact duplicates always are).
+    2. If more than ``max_points`` remain, the bounding box of the points is cut into square
+       cells of side ``sqrt(area / max_points)``; points are ranked within their cell by score,
+       and the first ``max_points`` in the order (rank in cell, decreasing score) are kept: every
+       occupied cell gets its best point before any cell gets a second one.
+
+    Parameters
+    ----------
+    points : np.ndarray
+        (N, 2) pixel coordinates.
+    score : np.ndarray
+        (N,) strength, larger is better.
+    max_points : int
+        Most points kept.
+    min_distance : float
+        Minimum distance between kept points, pixels.
+
+    Returns
+    -------
+    np.ndarray
+        Sorted indices of the kept points.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    n = len(points)
+    if n == 0:
+        return np.empty(0, dtype=np.intp)
+    order = np.lexsort((np.arange(n), -np.asarray(score, dtype=np.float64)))
+    keep = _min_distance_greedy(points, order, min_distance)
+    if len(keep) > max_points:
+        sub = points[keep]
+        lo, hi = sub.min(axis=0), sub.max(axis=0)
+        area = max(float(np.prod(np.maximum(hi - lo, 1.0))), 1.0)
+        cell = math.sqrt(area / max_points)
+        ij = np.floor((sub - lo) / cell).astype(np.int64)
+        cell_id = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+        # keep is in decreasing score order, so the rank within a cell is the running count.
+        _, inverse = np.unique(cell_id, return_inverse=True)
+        rank = np.zeros(len(keep), dtype=np.int64)
+        seen: dict[int, int] = {}
+        for k, c in enumerate(inverse.tolist()):
+            rank[k] = seen.get(c, 0)
+            seen[c] = rank[k] + 1
+        chosen = np.lexsort((np.arange(len(keep)), rank))[:max_points]
+        keep = keep[chosen]
+    return np.sort(keep)
+
+
+def _min_distance_greedy(points: np.ndarray, order: np.ndarray, min_distance: float) -> np.ndarray:
+    """Indices (in ``order``) of points kept by greedy minimum-distance suppression."""
+    if min_distance <= 0:
+        # Only exact duplicates go.
+        _, first = np.unique(points[order], axis=0, return_index=True)
+        return order[np.sort(first)]
+    cell = float(min_distance)
+    keys = np.floor(points / cell).astype(np.int64)
+    grid: dict[tuple[int, int], list[int]] = {}
+    kept: list[int] = []
+    d2min = min_distance * min_distance
+    for i in order.tolist():
+        cx, cy = int(keys[i, 0]), int(keys[i, 1])
+        px, py = points[i]
+        close = False
+        for gx in (cx - 1, cx, cx + 1):
+            for gy in (cy - 1, cy, cy + 1):
+                for j in grid.get((gx, gy), ()):
+                    dx, dy = points[j, 0] - px, points[j, 1] - py
+                    if dx * dx + dy * dy < d2min:
+                        close = True
+                        break
+                if close:
+                    break
+            if close:
+                break
+        if not close:
+            kept.append(i)
+            grid.setdefault((cx, cy), []).append(i)
+    return np.array(kept, dtype=np.intp)
+
+
+# --- the filter and the entry point ---------------------------------------------------------------
+
+
+def _epipolar(
+    ref: np.ndarray, mov: np.ndarray, options: RegistrationOptions, stage: str
+) -> tuple[EpipolarModel, np.ndarray, np.ndarray]:
+    """Robust epipolar fit; returns the model, the inlier mask and all residuals."""
+    needed = MIN_PAIRS[options.epipolar_model]
+    if len(ref) < needed:
+        raise NotEnoughPointsError(
+            len(ref), needed,
+            f"{stage} (the {options.epipolar_model} epipolar filter cannot reject outliers "
+            f"robustly from fewer pairs; set epipolar_filter to false to use them unfiltered)",
+        )
+    model = estimate_fundamental(
+        ref, mov, options.epipolar_model, options.epipolar_threshold, options.seed
+    )
+    residuals = model.residuals(ref, mov)
+    return model, residuals <= model.threshold, residuals
+
+
+def _filter_matches(
+    matches: Matches, options: RegistrationOptions
+) -> tuple[Matches, EpipolarModel | None, np.ndarray]:
+    """Epipolar filter of automatic matches; returns the inliers, the model and residuals."""
+    if not options.epipolar_filter:
+        matches.counts["epipolar"] = len(matches.reference)
+        return matches, None, np.full(len(matches.reference), np.nan)
+    model, inl, res = _epipolar(
+        matches.reference, matches.moving, options, f"matching ({matches.source})"
+    )
+    out = matches.subset(inl)
+    out.counts["epipolar"] = int(np.count_nonzero(inl))
+    out.rejected["epipolar"] = int(np.count_nonzero(~inl))
+    return out, model, res[inl]
+
+
+def _run_matcher(
+    name: str, ref_gray: np.ndarray, mov_gray: np.ndarray, options: RegistrationOptions
+) -> Matches:
+    # Enough candidates that the spread step can still choose after tracking/filter losses.
+    candidates = int(min(max(3 * options.max_points, 500), 60_000))
+    if name == "lk":
+        return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=options.seed)
+    return match_sift(ref_gray, mov_gray, candidates)
+
+
+def _auto_is_enough(filtered: Matches, consistent: int, options: RegistrationOptions) -> bool:
+    n = len(filtered.reference)
+    target = min(AUTO_MIN_CONSISTENT, options.max_points)
+    return n >= target and n >= AUTO_MIN_INLIER_SHARE * consistent
+
+
+def _automatic(
+    ref_gray: np.ndarray, mov_gray: np.ndarray, options: RegistrationOptions
+) -> ConjugatePoints:
+    names = ["lk", "sift"] if options.matcher == "auto" else [options.matcher]
+    best: tuple[Matches, EpipolarModel | None, np.ndarray] | None = None
+    failure: NotEnoughPointsError | None = None
+    tried: list[Matches] = []
+    for name in names:
+        raw = _run_matcher(name, ref_gray, mov_gray, options)
+        tried.append(raw)
+        try:
+            result = _filter_matches(raw, options)
+        except NotEnoughPointsError as exc:
+            failure = exc
+            continue
+        if best is None or len(result[0].reference) > len(best[0].reference):
+            best = result
+        if options.matcher == "auto" and _auto_is_enough(result[0], len(raw.reference), options):
+            break
+    if best is None:
+        assert failure is not None
+        raise failure
+    matches, model, residuals = best
+    counts = dict(matches.counts)
+    if matches.source == "sift" and tried[0].source == "lk":
+        lk = tried[0]
+        for k in ("detected", "tracked", "consistent"):
+            counts[f"lk_{k}"] = lk.counts.get(k, 0)
+    keep = spread_points(matches.reference, matches.score, options.max_points, options.min_distance)
+    rejected = dict(matches.rejected)
+    rejected["spread"] = len(matches.reference) - len(keep)
+    counts["kept"] = len(keep)
+    if len(keep) < MIN_MESH_PAIRS:
+        stage = "the epipolar filter" if options.epipolar_filter else f"matching ({matches.source})"
+        raise NotEnoughPointsError(len(keep), MIN_MESH_PAIRS, stage)
+    return ConjugatePoints(
+        reference=matches.reference[keep],
+        moving=matches.moving[keep],
+        source=matches.source,
+        counts=counts,
+        rejected=rejected,
+        epipolar=model,
+        residuals=residuals[keep],
+    )
+
+
+def _client(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    points: tuple[np.ndarray, np.ndarray],
+    options: RegistrationOptions,
+) -> ConjugatePoints:
+    try:
+        ref = np.asarray(points[0], dtype=np.float64)
+        mov = np.asarray(points[1], dtype=np.float64)
+    except (TypeError, ValueError, IndexError) as exc:
+        raise InputError("points must be two (N, 2) arrays of numbers", "points") from exc
+    if ref.ndim != 2 or ref.shape[1:] != (2,) or mov.shape != ref.shape:
+        raise InputError(
+            f"points must be two (N, 2) arrays of the same length, got shapes {ref.shape} and "
+            f"{mov.shape}",
+            "points",
+        )
+    counts = {"given": len(ref)}
+    rejected: dict[str, int] = {}
+    finite = np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(mov), axis=1)
+    rejected["not finite"] = int(np.count_nonzero(~finite))
+    inside = finite & _inside(ref, reference.shape, BORDER_TOLERANCE)
+    inside &= _inside(mov, moving.shape, BORDER_TOLERANCE)
+    rejected["outside image"] = int(np.count_nonzero(finite & ~inside))
+    idx = np.flatnonzero(inside)
+    # A reference point given twice cannot be a mesh vertex twice: keep its first pair.
+    _, first = np.unique(ref[idx], axis=0, return_index=True)
+    unique = idx[np.sort(first)]
+    rejected["duplicate"] = len(idx) - len(unique)
+    ref, mov = ref[unique], mov[unique]
+    counts["valid"] = len(ref)
+    if len(ref) < MIN_MESH_PAIRS:
+        raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "validation of the client points")
+    model: EpipolarModel | None = None
+    residuals = np.full(len(ref), np.nan)
+    if options.epipolar_filter:
+        model, inl, res = _epipolar(ref, mov, options, "validation of the client points")
+        rejected["epipolar"] = int(np.count_nonzero(~inl))
+        ref, mov, residuals = ref[inl], mov[inl], res[inl]
+        counts["epipolar"] = len(ref)
+        if len(ref) < MIN_MESH_PAIRS:
+            raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "the epipolar filter")
+    counts["kept"] = len(ref)
+    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals)
+
+
+def find_conjugate_points(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    options: RegistrationOptions,
+    points: tuple[np.ndarray, np.ndarray] | None = None,
+) -> ConjugatePoints:
+    """Conjugate point pairs of two images, filtered by their epipolar geometry.
+
+    Parameters
+    ----------
+    reference, moving : np.ndarray
+        OpenCV-layout images (uint8 or uint16; grey ``(H, W)`` or BGR/BGRA ``(H, W, C)``),
+        possibly of different sizes.
+    options : RegistrationOptions
+        Uses ``matcher``, ``epipolar_model``, ``epipolar_filter``, ``epipolar_threshold``,
+        ``max_points``, ``min_distance`` and ``seed``.
+    points : tuple of np.ndarray, optional
+        Client pairs ``(reference_points, moving_points)``, each (N, 2) pixels. They are
+        validated (finite, inside their image within :data:`BORDER_TOLERANCE` pixels, no
+        repeated reference point), filtered if ``options.epipolar_filter``, never thinned.
+        Without them the matcher of ``options.matcher`` runs, then the filter and the spread step.
+
+    Returns
+    -------
+    ConjugatePoints
+        Kept pairs, their residuals, the model and the counts of every stage.
+
+    Raises
+    ------
+    NotEnoughPointsError
+        Fewer than 3 pairs remain, or fewer than the filter needs (6 for the affine model, 10 for
+        the projective one) reach it; the message says how many were found and needed.
+    InputError
+        An image or the points are malformed.
+
+    Notes
+    -----
+    Deterministic: the same images, points and options (including ``seed``) give the same pairs.
+    """
+    check_image(reference, "reference")
+    check_image(moving, "moving")
+    if points is not None:
+        return _client(reference, moving, points, options)
+    return _automatic(to_gray8(reference), to_gray8(moving), options)
