@@ -62,7 +62,9 @@ def _fmt(v: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m bench.matching", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m bench.matching", description=__doc__.split("\n")[0]
+    )
     parser.add_argument("--pairs", nargs="*", help="pair folder names (default: all present)")
     parser.add_argument("--matcher", choices=["lk", "sift", "auto"], default=None)
     parser.add_argument("--model", choices=["affine", "projective"], default=None)

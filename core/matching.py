@@ -340,8 +340,13 @@ def match_lk(
     seed: int = 0,
     win: int = 21,
     levels: int = 3,
+    prior: np.ndarray | None = None,
 ) -> Matches:
     """Harris corners tracked by pyramidal Lucas-Kanade with a forward-backward check.
+
+    The moving image is first resampled into the reference frame through a global homography
+    (``prior`` or, by default, :func:`estimate_global_prior`; the identity if that fails), so
+    that LK only has to recover the residual motion; tracked points are mapped back through it.
 
     Parameters
     ----------
@@ -357,6 +362,8 @@ def match_lk(
         Seed of the global prior's robust fit.
     win, levels : int
         LK window side (pixels) and number of pyramid levels above full resolution.
+    prior : np.ndarray, optional
+        (3, 3) homography reference -> moving (full-resolution pixels) to start from.
 
     Returns
     -------
@@ -365,7 +372,7 @@ def match_lk(
     """
     a = cv2.equalizeHist(ref_gray)
     b = cv2.equalizeHist(mov_gray)
-    H = estimate_global_prior(a, b, seed=seed)
+    H = estimate_global_prior(a, b, seed=seed) if prior is None else np.asarray(prior, float)
     if H is None:
         H = np.eye(3)
     h, w = a.shape
@@ -582,51 +589,97 @@ def _filter_matches(
     return out, model, res[inl]
 
 
-def _run_matcher(
-    name: str, ref_gray: np.ndarray, mov_gray: np.ndarray, options: RegistrationOptions
-) -> Matches:
-    # Enough candidates that the spread step can still choose after tracking/filter losses.
-    candidates = int(min(max(3 * options.max_points, 500), 60_000))
-    if name == "lk":
-        return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=options.seed)
-    return match_sift(ref_gray, mov_gray, candidates)
+def _homography_from_matches(
+    matches: Matches, seed: int, min_inliers: int = 15
+) -> np.ndarray | None:
+    """Robust homography reference -> moving of a match set (a prior for guided tracking)."""
+    if len(matches.reference) < min_inliers:
+        return None
+    params = cv2.UsacParams()
+    params.threshold = 3.0
+    params.confidence = 0.999
+    params.maxIterations = 5000
+    params.randomGeneratorState = int(seed)
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MSAC
+    params.loMethod = cv2.LOCAL_OPTIM_INNER_LO
+    params.loIterations = 10
+    params.loSampleSize = 14
+    params.final_polisher = cv2.LSQ_POLISHER
+    params.final_polisher_iterations = 3
+    params.isParallel = False
+    H, mask = cv2.findHomography(matches.reference, matches.moving, params)
+    if H is None or mask is None or int(mask.sum()) < min_inliers:
+        return None
+    return H / H[2, 2]
 
 
-def _auto_is_enough(filtered: Matches, consistent: int, options: RegistrationOptions) -> bool:
-    n = len(filtered.reference)
+Filtered = tuple[Matches, "EpipolarModel | None", np.ndarray]
+
+
+def _try_filter(matches: Matches, options: RegistrationOptions) -> Filtered | NotEnoughPointsError:
+    try:
+        return _filter_matches(matches, options)
+    except NotEnoughPointsError as exc:
+        return exc
+
+
+def _is_enough(result: Filtered | NotEnoughPointsError, options: RegistrationOptions) -> bool:
+    """Whether tracked pairs are numerous and coherent enough for ``auto`` to stop."""
+    if isinstance(result, NotEnoughPointsError):
+        return False
+    matches = result[0]
+    n = len(matches.reference)
+    consistent = matches.counts.get("consistent", n)
     target = min(AUTO_MIN_CONSISTENT, options.max_points)
     return n >= target and n >= AUTO_MIN_INLIER_SHARE * consistent
+
+
+def _size(result: Filtered | NotEnoughPointsError) -> int:
+    return -1 if isinstance(result, NotEnoughPointsError) else len(result[0].reference)
 
 
 def _automatic(
     ref_gray: np.ndarray, mov_gray: np.ndarray, options: RegistrationOptions
 ) -> ConjugatePoints:
-    names = ["lk", "sift"] if options.matcher == "auto" else [options.matcher]
-    best: tuple[Matches, EpipolarModel | None, np.ndarray] | None = None
-    failure: NotEnoughPointsError | None = None
-    tried: list[Matches] = []
-    for name in names:
-        raw = _run_matcher(name, ref_gray, mov_gray, options)
-        tried.append(raw)
-        try:
-            result = _filter_matches(raw, options)
-        except NotEnoughPointsError as exc:
-            failure = exc
-            continue
-        if best is None or len(result[0].reference) > len(best[0].reference):
-            best = result
-        if options.matcher == "auto" and _auto_is_enough(result[0], len(raw.reference), options):
-            break
-    if best is None:
-        assert failure is not None
-        raise failure
-    matches, model, residuals = best
-    counts = dict(matches.counts)
-    if matches.source == "sift" and tried[0].source == "lk":
-        lk = tried[0]
-        for k in ("detected", "tracked", "consistent"):
-            counts[f"lk_{k}"] = lk.counts.get(k, 0)
+    # Enough candidates that the spread step can still choose after tracking/filter losses.
+    candidates = int(min(max(3 * options.max_points, 500), 60_000))
+    seed = options.seed
+
+    def lk(prior: np.ndarray | None = None) -> Matches:
+        return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=seed,
+                        prior=prior)
+
+    if options.matcher == "lk":
+        result = _try_filter(lk(), options)
+    elif options.matcher == "sift":
+        result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options)
+    else:
+        result = _try_filter(lk(), options)
+        if not _is_enough(result, options):
+            tracked = result
+            result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options)
+            if not isinstance(result, NotEnoughPointsError):
+                # SIFT found the geometry; tracking started from it is usually denser and more
+                # accurate (full-resolution LK), so prefer it when it is coherent and larger.
+                sift_matches = result[0]
+                H = _homography_from_matches(sift_matches, seed)
+                if H is not None:
+                    guided = _try_filter(lk(prior=H), options)
+                    if _is_enough(guided, options) and _size(guided) > _size(result):
+                        gm = guided[0]  # type: ignore[index]
+                        gm.counts["prior_sift_pairs"] = len(sift_matches.reference)
+                        result = guided
+            if _size(tracked) > _size(result):
+                result = tracked
+            elif not isinstance(tracked, NotEnoughPointsError) and result[0] is not tracked[0]:
+                for k in ("detected", "tracked", "consistent", "epipolar"):
+                    result[0].counts[f"lk_{k}"] = tracked[0].counts.get(k, 0)
+    if isinstance(result, NotEnoughPointsError):
+        raise result
+    matches, model, residuals = result
     keep = spread_points(matches.reference, matches.score, options.max_points, options.min_distance)
+    counts = dict(matches.counts)
     rejected = dict(matches.rejected)
     rejected["spread"] = len(matches.reference) - len(keep)
     counts["kept"] = len(keep)

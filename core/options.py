@@ -61,14 +61,26 @@ class RegistrationOptions(BaseModel):
     # --- conjugate points (matching and epipolar filter) ---------------------------------------
     matcher: Literal["lk", "sift", "auto"] = Field(
         "auto",
-        description="Automatic matcher used when no points are given: Harris + pyramidal "
-        "Lucas-Kanade ('lk', the paper), SIFT with ratio and mutual checks ('sift'), or 'auto' "
-        "(tracking first, SIFT when too few consistent pairs survive).",
+        description="Automatic matcher used when no points are given: Harris corners tracked by "
+        "pyramidal Lucas-Kanade with a forward-backward check ('lk', the paper's; a global "
+        "homography tracked on a coarse level pre-aligns the images), SIFT with ratio and "
+        "mutual checks ('sift', wide baseline), or 'auto': tracking first; if fewer than 100 "
+        "tracked pairs (or fewer than half of the forward-backward consistent ones) pass the "
+        "epipolar filter, SIFT runs, and tracking is retried from the homography of the SIFT "
+        "matches; the largest consistent set wins and the result names its matcher.",
     )
     epipolar_model: Literal["affine", "projective"] = Field(
-        "affine",
+        "projective",
         description="Model of the robust epipolar filter: the affine fundamental matrix of the "
-        "paper or the projective fundamental matrix (close-range perspective photos).",
+        "paper (MSAC, 4-pair samples) or the projective fundamental matrix (OpenCV USAC). "
+        "Default 'projective', measured on the real pairs (bench.matching): on the three "
+        "close-range Strecha pairs the affine model keeps only 37-40% of the tracked pairs that "
+        "the projective one keeps (kept 369/202/504 vs 998/659/1000) at the same accuracy "
+        "(median Sampson distance to the true F 0.13-0.23 px for both), because perspective "
+        "makes true matches miss the affine hyperplane by more than the threshold; on the "
+        "near-affine pairs (Oxford leuven, Middlebury) both keep the same pairs. Choose "
+        "'affine' for distant, narrow-field views (the paper's model), or fewer than 10 pairs "
+        "(it needs 6, the projective model 10).",
     )
     epipolar_filter: bool = Field(
         True,
@@ -79,16 +91,28 @@ class RegistrationOptions(BaseModel):
         1.5,
         gt=0.0,
         le=100.0,
-        description="Inlier threshold of the epipolar filter: Gold Standard (affine) or Sampson "
-        "(projective) distance in pixels.",
+        description="Inlier threshold of the epipolar filter in pixels: Gold Standard distance "
+        "(affine: perpendicular distance to the hyperplane in (x', y', x, y)) or Sampson distance "
+        "(projective), both joint displacements of the two points. 1.5 px is about 3 times the "
+        "90th percentile of the tracked pairs' distance to the true F on the Strecha pairs "
+        "(0.4-0.7 px).",
     )
     max_points: int = Field(
-        1000, ge=3, le=20_000, description="Target number of automatically matched points."
+        1000,
+        ge=3,
+        le=20_000,
+        description="Most automatically matched pairs kept (the spread step keeps the strongest "
+        "of each grid cell first). 1000 vertices give about 2000 triangles, vertices about 80 px "
+        "apart on a 3072x2048 image: dense enough to follow the planes of a building; every "
+        "extra vertex adds about 3 edges to the MI search.",
     )
     min_distance: float = Field(
         10.0,
         ge=0.0,
         le=10_000.0,
         description="Minimum distance between automatically matched points in the reference "
-        "image (pixels), so that the points spread over the overlap.",
+        "image (pixels), so that they spread over the overlap instead of clustering on one "
+        "textured patch. 10 px keeps triangles above about 40 square pixels (over "
+        "min_triangle_area, enough pixels for a joint histogram) and the 21 px LK windows of "
+        "neighbours from mostly overlapping.",
     )
