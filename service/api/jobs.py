@@ -1,0 +1,444 @@
+"""Jobs resource: submit, list, read, dismiss a registration job and download its results."""
+
+from __future__ import annotations
+
+import json
+import re
+import uuid
+from pathlib import Path
+from typing import Annotated, Any
+from urllib.parse import urlencode
+
+from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import FileResponse
+from pydantic import ValidationError
+
+from core.errors import InputError
+from core.io import load_points, read_image
+from core.options import RegistrationOptions
+from service.deps import Services, get_services
+from service.problems import (
+    Problem,
+    from_input_error,
+    from_validation_error,
+    idempotency_conflict,
+    invalid_input,
+    not_found,
+    problem_responses,
+    result_not_ready,
+)
+from service.schemas import JobList, Link, StatusInfo
+from service.storage import RESULTS
+from service.store import IdempotencyConflict, Job, JobStatus
+from service.uploads import ReceivedForm, receive_form
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+FORM_PARTS = ("reference", "moving", "points", "options")
+RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
+RESULT_ROUTES = {"mesh": "mesh", "registered": "registered.png", "convergence": "convergence"}
+_KEY_PATTERN = re.compile(r"^[\x21-\x7e]{1,255}$")
+
+
+# --- status documents ----------------------------------------------------------------------
+
+
+def _root(request: Request) -> str:
+    return request.scope.get("root_path", "").rstrip("/")
+
+
+def job_href(request: Request, job_id: str) -> str:
+    return f"{_root(request)}/v1/jobs/{job_id}"
+
+
+def status_info(job: Job, request: Request) -> StatusInfo:
+    """The status document of ``job``, with links relative to the server root."""
+    href = job_href(request, job.id)
+    links = [Link(href=href, rel="self", type="application/json", title="This job")]
+    if job.status == JobStatus.successful:
+        for key, route in RESULT_ROUTES.items():
+            result = RESULTS[key]
+            links.append(
+                Link(href=f"{href}/{route}", rel=RESULTS_REL, type=result.media_type,
+                     title=result.title)
+            )
+    return StatusInfo(
+        id=job.id,
+        status=job.status,
+        stage=job.stage if job.status == JobStatus.running else None,  # type: ignore[arg-type]
+        progress=int(job.progress),
+        message=job.message,
+        attempts=job.attempts,
+        created=job.created,
+        started=job.started,
+        finished=job.finished,
+        updated=job.updated,
+        options=job.options,
+        has_points=job.has_points,
+        links=links,
+        error=job.error,  # type: ignore[arg-type]
+    )
+
+
+def _get_job(services: Services, job_id: str) -> Job:
+    job = services.store.get(job_id)
+    if job is None:
+        raise not_found(f"no job {job_id!r}")
+    return job
+
+
+# --- submission ----------------------------------------------------------------------------
+
+
+def parse_options(data: bytes) -> dict[str, Any]:
+    """The effective options (defaults included) of an ``options`` part, a JSON object."""
+    text = data.decode("utf-8", "replace").strip()
+    if not text:
+        return RegistrationOptions().model_dump(mode="json")
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise invalid_input(f"options is not valid JSON: {exc}", "options") from None
+    if not isinstance(value, dict):
+        raise invalid_input("options must be a JSON object, e.g. {\"bins\": 32}", "options")
+    try:
+        return RegistrationOptions.model_validate(value).model_dump(mode="json")
+    except ValidationError as exc:
+        raise from_validation_error(exc, prefix="options") from None
+
+
+def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, Any], bool]:
+    """Check every part of a submission, cheapest first.
+
+    Returns
+    -------
+    options : dict
+        The effective options.
+    has_points : bool
+        True if conjugate points were sent.
+
+    Raises
+    ------
+    Problem
+        422 for a missing part, bad options or points and images over the pixel limit, 415 for
+        a file that is not a decodable image.
+    """
+    for name in ("reference", "moving"):
+        if name not in form.parts:
+            raise invalid_input(f"the file part {name!r} is missing", name)
+    options = (
+        parse_options(form.parts["options"].path.read_bytes())
+        if "options" in form.parts
+        else RegistrationOptions().model_dump(mode="json")
+    )
+    has_points = "points" in form.parts
+    try:
+        if has_points:
+            load_points(form.parts["points"].path.read_bytes(), field="points")
+        for name in ("reference", "moving"):
+            # Decoding checks the pixel count from the header before decoding.
+            read_image(form.parts[name].path, max_pixels, field=name)
+    except InputError as exc:
+        raise from_input_error(exc) from None
+    return options, has_points
+
+
+def _check_key(key: str | None) -> str | None:
+    if key is None:
+        return None
+    if not _KEY_PATTERN.match(key):
+        raise invalid_input(
+            "Idempotency-Key must be 1 to 255 visible ASCII characters", "Idempotency-Key"
+        )
+    return key
+
+
+def _accept(
+    services: Services, form: ReceivedForm, staging: Path, key: str | None
+) -> tuple[Job, bool]:
+    """Validate and store a submission; returns the job and whether it is new."""
+    store, storage, settings = services.store, services.storage, services.settings
+    fingerprint = form.fingerprint()
+    if key is not None:
+        existing = store.get_by_idempotency_key(key)
+        if existing is not None:
+            if existing.request_hash != fingerprint:
+                raise idempotency_conflict(
+                    f"the Idempotency-Key was used for job {existing.id} with another request",
+                    existing.id,
+                )
+            return existing, False
+    options, has_points = validate_submission(form, settings.max_pixels)
+    job_id = uuid.uuid4().hex
+    # Files first, then the row: a crash in between leaves files without a row (swept later),
+    # never a row without its files.
+    storage.commit_inputs(staging, job_id)
+    try:
+        job, created = store.create(
+            job_id,
+            options,
+            has_points,
+            settings.max_attempts,
+            idempotency_key=key,
+            request_hash=fingerprint,
+        )
+    except IdempotencyConflict as exc:
+        storage.remove(job_id)
+        raise idempotency_conflict(str(exc), exc.job.id) from None
+    except BaseException:
+        storage.remove(job_id)
+        raise
+    if not created:
+        storage.remove(job_id)
+    else:
+        services.queue.enqueue(job.id)
+    return job, created
+
+
+_FORM_SCHEMA = {
+    "type": "object",
+    "required": ["reference", "moving"],
+    "properties": {
+        "reference": {
+            "type": "string",
+            "format": "binary",
+            "description": "Reference image: PNG, JPEG, TIFF, PPM/PGM or BMP, 8 or 16 bit, grey "
+            "or colour.",
+        },
+        "moving": {
+            "type": "string",
+            "format": "binary",
+            "description": "Moving image (registered onto the reference), same formats.",
+        },
+        "points": {
+            "type": "string",
+            "description": "Optional conjugate points, as a file part or a form field: JSON "
+            '{"reference": [[x, y], ...], "moving": [[x, y], ...]} or CSV with the header '
+            "x,y,x_moving,y_moving. Pixel coordinates, x right, y down, (0, 0) the centre of "
+            "the top-left pixel. Without points, they are matched automatically.",
+            "example": '{"reference": [[10, 12], [200, 15], [105, 180]], '
+            '"moving": [[12, 11], [203, 17], [104, 184]]}',
+        },
+        "options": {
+            "allOf": [{"$ref": "#/components/schemas/Options"}],
+            "description": "Optional options as a JSON object, as a form field or a file part "
+            "(see GET /v1/options). Unknown names are refused.",
+        },
+    },
+}
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=StatusInfo,
+    summary="Submit a registration job",
+    description="Upload a reference and a moving image (and optionally conjugate points and "
+    "options) as multipart/form-data. The upload streams to disk; a part over the size limit "
+    "is refused with 413. Answers 201 with the job's status document and its URL in "
+    "`Location`. With an `Idempotency-Key` header, a repeated request returns the job of the "
+    "first one (same answer) instead of creating a second job.",
+    responses={
+        201: {
+            "description": "Job accepted (or the job of the same Idempotency-Key).",
+            "headers": {
+                "Location": {
+                    "description": "URL of the job's status document.",
+                    "schema": {"type": "string"},
+                }
+            },
+        },
+        **problem_responses(400, 413, 415, 422),
+    },
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {
+                "multipart/form-data": {
+                    "schema": _FORM_SCHEMA,
+                    "encoding": {
+                        "options": {"contentType": "application/json"},
+                    },
+                }
+            },
+        }
+    },
+)
+async def submit_job(
+    request: Request,
+    response: Response,
+    services: ServicesDep,
+    idempotency_key: Annotated[
+        str | None,
+        Header(
+            description="Client-chosen key (1-255 visible ASCII characters); the same key "
+            "with the same request returns the same job.",
+            examples=["a7c3e2d4-upload-42"],
+        ),
+    ] = None,
+) -> StatusInfo:
+    key = _check_key(idempotency_key)
+    storage = services.storage
+    staging = await run_in_threadpool(storage.new_staging)
+    try:
+        form = await receive_form(
+            request.headers.get("content-type"),
+            request.headers.get("content-length"),
+            request.stream(),
+            staging,
+            FORM_PARTS,
+            services.settings.max_upload_bytes,
+        )
+        job, created = await run_in_threadpool(_accept, services, form, staging, key)
+    finally:
+        await run_in_threadpool(storage.discard, staging)
+    response.headers["Location"] = job_href(request, job.id)
+    if not created:
+        response.headers["Idempotent-Replayed"] = "true"
+    return status_info(job, request)
+
+
+# --- reading, listing, dismissing ------------------------------------------------------------
+
+
+@router.get(
+    "",
+    response_model=JobList,
+    summary="List jobs",
+    description="Jobs newest first, a page at a time, optionally only those with given "
+    "statuses (repeat `status`).",
+    responses=problem_responses(422),
+)
+def list_jobs(
+    request: Request,
+    services: ServicesDep,
+    status: Annotated[
+        list[JobStatus] | None,
+        Query(description="Only jobs with one of these statuses (repeatable).",
+              examples=[["running"]]),
+    ] = None,
+    limit: Annotated[int, Query(ge=1, le=100, description="Jobs per page.")] = 20,
+    offset: Annotated[int, Query(ge=0, description="Jobs to skip (newest first).")] = 0,
+) -> JobList:
+    statuses = status or []
+    jobs, matched = services.store.list(statuses, limit=limit, offset=offset)
+    base = f"{_root(request)}/v1/jobs"
+
+    def page(at: int) -> str:
+        query: list[tuple[str, Any]] = [("status", s.value) for s in statuses]
+        query += [("limit", limit), ("offset", at)]
+        return f"{base}?{urlencode(query)}"
+
+    links = [Link(href=page(offset), rel="self", type="application/json", title="This page")]
+    if offset + len(jobs) < matched:
+        links.append(
+            Link(href=page(offset + limit), rel="next", type="application/json",
+                 title="Next page")
+        )
+    if offset > 0:
+        links.append(
+            Link(href=page(max(0, offset - limit)), rel="prev", type="application/json",
+                 title="Previous page")
+        )
+    return JobList(
+        jobs=[status_info(j, request) for j in jobs],
+        numberMatched=matched,
+        numberReturned=len(jobs),
+        links=links,
+    )
+
+
+@router.get(
+    "/{job_id}",
+    response_model=StatusInfo,
+    summary="Status of a job",
+    description="Status, stage and progress of a job; once successful, links to every result. "
+    "A failed job carries the reason as a problem document in `error`.",
+    responses=problem_responses(404),
+)
+def get_job(job_id: str, request: Request, services: ServicesDep) -> StatusInfo:
+    return status_info(_get_job(services, job_id), request)
+
+
+@router.delete(
+    "/{job_id}",
+    status_code=204,
+    response_class=Response,
+    summary="Dismiss a job",
+    description="Cancel a queued or running job (the worker stops at its next progress check) "
+    "and remove its files, inputs and results. The job stays listed as dismissed until the "
+    "retention removes it. Dismissing a dismissed job does nothing.",
+    responses={204: {"description": "Dismissed."}, **problem_responses(404)},
+)
+def dismiss_job(job_id: str, services: ServicesDep) -> Response:
+    _get_job(services, job_id)
+    services.store.dismiss(job_id)
+    services.storage.remove(job_id)
+    return Response(status_code=204)
+
+
+# --- results -------------------------------------------------------------------------------
+
+
+def _result(services: Services, job_id: str, key: str) -> FileResponse:
+    job = _get_job(services, job_id)
+    if job.status != JobStatus.successful:
+        raise result_not_ready(job.id, job.status.value)
+    path = services.storage.result_path(job_id, key)
+    if path is None:
+        raise Problem(
+            404,
+            "result-missing",
+            "Result missing",
+            f"the {key} result of job {job_id} is no longer stored",
+        )
+    result = RESULTS[key]
+    return FileResponse(
+        path,
+        media_type=result.media_type,
+        filename=result.filename,
+        content_disposition_type="inline",
+    )
+
+
+@router.get(
+    "/{job_id}/mesh",
+    response_class=FileResponse,
+    summary="Mesh result",
+    description="mesh.json: reference and moving vertices, initial and final triangles, the "
+    "swaps, the parameters and the matching results (pixel coordinates, x right, y down, (0, 0) "
+    "the centre of the top-left pixel).",
+    responses={200: {"content": {"application/json": {}}, "description": "mesh.json"},
+               **problem_responses(404, 409)},
+)
+def get_mesh(job_id: str, services: ServicesDep) -> FileResponse:
+    return _result(services, job_id, "mesh")
+
+
+@router.get(
+    "/{job_id}/registered.png",
+    response_class=FileResponse,
+    summary="Registered image",
+    description="The moving image warped onto the reference, PNG with alpha (opaque inside the "
+    "mesh).",
+    responses={200: {"content": {"image/png": {}}, "description": "registered.png"},
+               **problem_responses(404, 409)},
+)
+def get_registered(job_id: str, services: ServicesDep) -> FileResponse:
+    return _result(services, job_id, "registered")
+
+
+@router.get(
+    "/{job_id}/convergence",
+    response_class=FileResponse,
+    summary="Convergence of the optimizer",
+    description="convergence.json: initial and final MI/NMI (bits, dimensionless), every "
+    "iteration with its swap, delta, MI, NMI and elapsed seconds, and why it stopped.",
+    responses={200: {"content": {"application/json": {}}, "description": "convergence.json"},
+               **problem_responses(404, 409)},
+)
+def get_convergence(job_id: str, services: ServicesDep) -> FileResponse:
+    return _result(services, job_id, "convergence")

@@ -1,0 +1,146 @@
+"""Application factory: builds the FastAPI app and, in its lifespan, the store, the storage, the
+queue with its worker processes and the maintenance thread."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Any
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from service import __version__
+from service.api import jobs, system
+from service.deps import Services
+from service.maintenance import Janitor
+from service.metrics import Metrics
+from service.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
+from service.queue import JobQueue, LocalProcessQueue
+from service.schemas import Options
+from service.settings import Settings
+from service.storage import LocalStorage
+from service.store import FINISHED, JobStore
+
+log = logging.getLogger(__name__)
+
+QueueFactory = Callable[[Settings, JobStore, Callable[[str], None]], JobQueue]
+"""Builds the queue from the settings, the store and the callback of finished attempts."""
+
+DESCRIPTION = """\
+Piecewise-linear registration of an image pair: a Delaunay mesh over conjugate points, refined by
+a mutual-information edge-swap optimizer. Submit a job with `POST /v1/jobs`, poll its status,
+download its results. Resource names and status words follow OGC API - Processes; errors are
+RFC 9457 problem documents (`application/problem+json`).
+
+Pixel coordinates: x right, y down, (0, 0) the centre of the top-left pixel.
+"""
+
+
+def _default_queue(
+    settings: Settings, store: JobStore, on_finished: Callable[[str], None]
+) -> JobQueue:
+    return LocalProcessQueue(settings, store, on_finished)
+
+
+def create_app(settings: Settings | None = None, queue_factory: QueueFactory | None = None) -> (
+    FastAPI
+):
+    """Build the application.
+
+    Parameters
+    ----------
+    settings : Settings, optional
+        Defaults to the settings read from the ``PWLREG_*`` environment.
+    queue_factory : callable, optional
+        Builds the job queue; defaults to a :class:`~service.queue.LocalProcessQueue`.
+
+    Returns
+    -------
+    fastapi.FastAPI
+        The app; the database, the queue and the workers start with its lifespan.
+    """
+    settings = settings or Settings()
+    make_queue = queue_factory or _default_queue
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        storage = LocalStorage(settings.data_dir)
+        storage.prepare()
+        store = JobStore.from_url(settings.resolved_database_url)
+        store.create_schema()
+        metrics = Metrics()
+
+        def on_finished(job_id: str) -> None:
+            job = store.get(job_id)
+            if job is not None and job.status in FINISHED and job.duration is not None:
+                metrics.observe_job(job.status.value, job.duration)
+
+        queue = make_queue(settings, store, on_finished)
+        janitor = Janitor(settings, store, storage, queue)
+        janitor.recover()  # jobs of a previous process that died go back to the queue
+        queue.start()
+        janitor.start()
+        app.state.services = Services(settings, store, storage, queue, metrics)
+        log.info(
+            "pwlreg ready: data in %s, %d worker(s)", settings.data_dir.resolve(), settings.workers
+        )
+        try:
+            yield
+        finally:
+            janitor.stop()
+            queue.stop()
+            store.dispose()
+
+    app = FastAPI(
+        title="pwlreg",
+        version=__version__,
+        summary="Piecewise-linear image registration as a service",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    install_problem_handlers(app)
+    app.include_router(jobs.router)
+    app.include_router(system.router)
+    app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
+    return app
+
+
+def _openapi(app: FastAPI) -> dict[str, Any]:
+    """The OpenAPI document, with problem answers as ``application/problem+json`` and the
+    options model among the components (the multipart form refers to it)."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    doc = get_openapi(
+        title=app.title,
+        version=app.version,
+        summary=app.summary,
+        description=app.description,
+        routes=app.routes,
+        tags=[
+            {"name": "jobs", "description": "Registration jobs and their results."},
+            {"name": "system", "description": "Options, health, readiness and metrics."},
+        ],
+    )
+    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    options_schema = Options.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas.update(options_schema.pop("$defs", {}))
+    schemas["Options"] = options_schema
+    problem_ref = {"$ref": "#/components/schemas/ProblemDetails"}
+    for path in doc.get("paths", {}).values():
+        for operation in path.values():
+            for code, response in operation.get("responses", {}).items():
+                content = response.get("content", {})
+                if code[0] not in "45" or "application/json" not in content:
+                    continue
+                media = content.pop("application/json")
+                if media.get("schema", {}).get("$ref", "").endswith("/HTTPValidationError"):
+                    # FastAPI's own 422 answer: ours is a problem document.
+                    media = {"schema": problem_ref}
+                    response["description"] = "Invalid path, query or header parameter."
+                content[PROBLEM_MEDIA_TYPE] = media
+    for unused in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(unused, None)
+    app.openapi_schema = doc
+    return doc

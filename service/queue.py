@@ -1,0 +1,215 @@
+"""The job queue: carries accepted jobs to workers.
+
+The job rows are the truth: a job is queued because its row says ``accepted``, not because some
+in-memory structure holds it. The queue only decides when a worker runs which job, so a queue
+lost with its process loses no job; :meth:`JobQueue.start` rebuilds it from the store.
+
+:class:`JobQueue` is the interface the API uses. :class:`LocalProcessQueue` runs the jobs in a
+pool of local worker processes (the work is CPU-bound); a Celery implementation (Redis broker,
+PostgreSQL store) can sit behind the same interface: ``enqueue`` would send the task, the Celery
+worker would call :func:`service.worker.run_job`.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures import wait as wait_futures
+from concurrent.futures.process import BrokenProcessPool
+from functools import partial
+
+from service.settings import Settings
+from service.store import JobStatus, JobStore
+from service.worker import init_process, ping, run_in_process
+
+log = logging.getLogger(__name__)
+
+
+class JobQueue(ABC):
+    """Where accepted jobs wait for a worker."""
+
+    @abstractmethod
+    def start(self) -> None:
+        """Start dispatching, including the jobs already accepted in the store."""
+
+    @abstractmethod
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop dispatching; running jobs are given back to the queue (their rows go back to
+        ``accepted``) or, if they do not stop within ``timeout`` seconds, killed (their leases
+        expire and the next start requeues them)."""
+
+    @abstractmethod
+    def enqueue(self, job_id: str) -> None:
+        """Tell the queue that the accepted job ``job_id`` is waiting."""
+
+    @abstractmethod
+    def is_ready(self) -> bool:
+        """True if jobs will be dispatched (the workers and the broker are reachable)."""
+
+    @abstractmethod
+    def depth(self) -> int:
+        """Number of jobs waiting for a worker."""
+
+
+class LocalProcessQueue(JobQueue):
+    """A pool of local worker processes fed from the job store, oldest job first.
+
+    A dispatcher thread keeps at most ``settings.workers`` jobs in the pool, so that the pool
+    holds no backlog of its own: the backlog is the accepted rows. It wakes up on
+    :meth:`enqueue`, when a job ends, and every ``poll_interval`` seconds (jobs accepted by
+    another process, jobs requeued by recovery).
+
+    Parameters
+    ----------
+    settings : Settings
+        ``workers`` is the pool size; the whole settings are passed to the workers.
+    store : JobStore
+    on_finished : callable, optional
+        Called with the job id after each attempt ends (e.g. to record metrics).
+    poll_interval : float
+        Seconds between two looks at the store when nothing wakes the dispatcher.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: JobStore,
+        on_finished: Callable[[str], None] | None = None,
+        poll_interval: float = 1.0,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.on_finished = on_finished
+        self.poll_interval = poll_interval
+        self._context = multiprocessing.get_context("spawn")
+        self._stop_event = self._context.Event()
+        self._wake = threading.Event()
+        self._lock = threading.Lock()
+        self._inflight: dict[str, Future[str]] = {}
+        self._executor: ProcessPoolExecutor | None = None
+        self._thread: threading.Thread | None = None
+        self._stopping = False
+        self._broken = False
+
+    # --- interface -----------------------------------------------------------------------------
+
+    def start(self) -> None:
+        self._executor = self._new_executor()
+        self._thread = threading.Thread(target=self._run, name="job-dispatcher", daemon=True)
+        self._thread.start()
+
+    def enqueue(self, job_id: str) -> None:
+        self._wake.set()
+
+    def is_ready(self) -> bool:
+        return (
+            self._thread is not None
+            and self._thread.is_alive()
+            and self._executor is not None
+            and not self._stopping
+        )
+
+    def depth(self) -> int:
+        return self.store.count_by_status()[JobStatus.accepted]
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stopping = True
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+        self._stop_event.set()
+        executor = self._executor
+        if executor is None:
+            return
+        with self._lock:
+            pending = list(self._inflight.values())
+        # shutdown() forgets the processes; keep them to kill those that do not stop.
+        processes = list((getattr(executor, "_processes", None) or {}).values())
+        executor.shutdown(wait=False, cancel_futures=True)
+        _, not_done = wait_futures(pending, timeout=timeout)
+        if not_done:
+            log.warning("%d job(s) did not stop in %.0f s; killing the workers", len(not_done),
+                        timeout)
+            for process in processes:
+                if process.is_alive():
+                    process.kill()
+        self._executor = None
+
+    # --- dispatcher ----------------------------------------------------------------------------
+
+    def _new_executor(self) -> ProcessPoolExecutor:
+        executor = ProcessPoolExecutor(
+            max_workers=self.settings.workers,
+            mp_context=self._context,
+            initializer=init_process,
+            initargs=(self.settings, self._stop_event),
+        )
+        # Start the processes now (they import core), not when the first job arrives.
+        for _ in range(self.settings.workers):
+            executor.submit(ping)
+        return executor
+
+    def _run(self) -> None:
+        while not self._stopping:
+            try:
+                if self._broken:
+                    self._replace_executor()
+                self._fill()
+            except Exception:  # noqa: BLE001 (the dispatcher must survive a database hiccup)
+                log.exception("dispatcher pass failed; retrying")
+                time.sleep(self.poll_interval)
+            self._wake.wait(self.poll_interval)
+            self._wake.clear()
+
+    def _fill(self) -> None:
+        assert self._executor is not None
+        with self._lock:
+            free = self.settings.workers - len(self._inflight)
+            busy = list(self._inflight)
+        if free <= 0:
+            return
+        for job_id in self.store.next_accepted(free, exclude=busy):
+            if self._stopping:
+                return
+            try:
+                future = self._executor.submit(run_in_process, job_id)
+            except (BrokenProcessPool, RuntimeError):
+                self._broken = True
+                return
+            with self._lock:
+                self._inflight[job_id] = future
+            future.add_done_callback(partial(self._done, job_id))
+
+    def _done(self, job_id: str, future: Future[str]) -> None:
+        with self._lock:
+            self._inflight.pop(job_id, None)
+        if not future.cancelled():
+            exc = future.exception()
+            if isinstance(exc, BrokenProcessPool):
+                # A worker process died (killed, out of memory). Its job's lease will expire
+                # and the maintenance pass requeues it; the pool is replaced.
+                log.error("worker pool broken while running job %s: %s", job_id, exc)
+                self._broken = True
+            elif exc is not None:
+                log.error("job %s: worker raised %r", job_id, exc)
+        if self.on_finished is not None:
+            try:
+                self.on_finished(job_id)
+            except Exception:  # noqa: BLE001
+                log.exception("on_finished callback failed for job %s", job_id)
+        self._wake.set()
+
+    def _replace_executor(self) -> None:
+        old = self._executor
+        self._broken = False
+        if old is not None:
+            old.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            self._inflight.clear()
+        self._executor = self._new_executor()
+        log.warning("worker pool replaced")

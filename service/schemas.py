@@ -1,0 +1,304 @@
+"""API models: the contract of the HTTP API, exported to ``openapi/openapi.json``.
+
+Names and status words follow OGC API - Processes (status info, link objects). Times are
+ISO 8601 in UTC; progress is a percentage (0-100).
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from core.options import RegistrationOptions
+from service.store import JobStatus
+
+_JOB_ID_EXAMPLE = "3f2c1e0a9b8d4c7e8f6a5b4c3d2e1f00"
+
+
+class Options(RegistrationOptions):
+    """Options of a registration job (every field optional in a request; the job document shows
+    the effective values, defaults included). Declared once in ``core.options``."""
+
+    model_config = ConfigDict(
+        title="Options",
+        json_schema_extra={
+            "examples": [{"cost": "mi", "optimizer": "greedy", "epsilon": 0.01, "bins": 16}]
+        },
+    )
+
+
+class Link(BaseModel):
+    """A link object (OGC API / RFC 8288 style)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "href": f"/v1/jobs/{_JOB_ID_EXAMPLE}/mesh",
+                    "rel": "http://www.opengis.net/def/rel/ogc/1.0/results",
+                    "type": "application/json",
+                    "title": "Meshes, swaps and matching results",
+                }
+            ]
+        }
+    )
+
+    href: str = Field(
+        description="Target of the link, a path relative to the server root.",
+        examples=[f"/v1/jobs/{_JOB_ID_EXAMPLE}"],
+    )
+    rel: str = Field(description="Relation type.", examples=["self"])
+    type: str | None = Field(
+        None, description="Media type of the target.", examples=["application/json"]
+    )
+    title: str | None = Field(
+        None, description="Human-readable title of the target.", examples=["This job"]
+    )
+
+
+class FieldError(BaseModel):
+    """One wrong input of a request."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"field": "options.bins", "message": "Input should be less than or "
+                          "equal to 256"}]
+        }
+    )
+
+    field: str = Field(description="Name of the input.", examples=["options.bins"])
+    message: str = Field(description="What is wrong with it.", examples=["Input should be ..."])
+
+
+class ProblemDetails(BaseModel):
+    """An error, as an RFC 9457 problem document (media type ``application/problem+json``)."""
+
+    model_config = ConfigDict(
+        extra="allow",
+        json_schema_extra={
+            "examples": [
+                {
+                    "type": "urn:pwlreg:problem:image-too-large",
+                    "title": "Image too large",
+                    "status": 422,
+                    "detail": "moving has 100000000 pixels (10000x10000); the limit is "
+                    "40000000",
+                    "field": "moving",
+                    "instance": "/v1/jobs",
+                }
+            ]
+        },
+    )
+
+    type: str = Field(
+        description="URI of the problem type, ``urn:pwlreg:problem:<slug>``.",
+        examples=["urn:pwlreg:problem:invalid-input"],
+    )
+    title: str = Field(description="Short summary of the problem type.", examples=["Invalid input"])
+    status: int = Field(description="HTTP status code of this occurrence.", examples=[422])
+    detail: str = Field(
+        description="Explanation of this occurrence.", examples=["options.bins: Input should be "
+                                                                 "less than or equal to 256"]
+    )
+    instance: str | None = Field(
+        None, description="Path of the request that failed.", examples=["/v1/jobs"]
+    )
+    field: str | None = Field(
+        None,
+        description="The input at fault: a form part (reference, moving, points), an option "
+        "(options.<name>), a query parameter or a header.",
+        examples=["options.bins"],
+    )
+    errors: list[FieldError] | None = Field(
+        None, description="Every wrong input, when there are several."
+    )
+
+
+class StatusInfo(BaseModel):
+    """Status of one job (OGC API - Processes ``statusInfo``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": _JOB_ID_EXAMPLE,
+                    "type": "process",
+                    "processID": "register",
+                    "status": "running",
+                    "stage": "optimizing",
+                    "progress": 57,
+                    "message": None,
+                    "attempts": 1,
+                    "created": "2026-01-01T12:00:00Z",
+                    "started": "2026-01-01T12:00:01Z",
+                    "finished": None,
+                    "updated": "2026-01-01T12:00:09Z",
+                    "options": {"cost": "mi", "optimizer": "greedy"},
+                    "has_points": True,
+                    "links": [
+                        {
+                            "href": f"/v1/jobs/{_JOB_ID_EXAMPLE}",
+                            "rel": "self",
+                            "type": "application/json",
+                            "title": "This job",
+                        }
+                    ],
+                    "error": None,
+                }
+            ]
+        }
+    )
+
+    id: str = Field(description="Identifier of the job.", examples=[_JOB_ID_EXAMPLE])
+    type: Literal["process"] = Field("process", description="Always 'process' (OGC).")
+    processID: Literal["register"] = Field(  # noqa: N815 (OGC member name)
+        "register", description="The process the job runs (OGC); pwlreg has one."
+    )
+    status: JobStatus = Field(
+        description="accepted (waiting for a worker), running, successful, failed or dismissed "
+        "(cancelled by the client).",
+        examples=["running"],
+    )
+    stage: Literal["matching", "triangulating", "optimizing", "rendering"] | None = Field(
+        None,
+        description="Stage of a running job: matching (conjugate points), triangulating "
+        "(initial Delaunay mesh), optimizing (edge swaps), rendering (registered image).",
+        examples=["optimizing"],
+    )
+    progress: int = Field(
+        ge=0, le=100, description="Estimated completion in percent.", examples=[57]
+    )
+    message: str | None = Field(
+        None,
+        description="Human-readable note: the one-line summary of a successful job, the reason "
+        "of a failure, or why the job was requeued.",
+        examples=["42 vertices, 68 triangles, 5 swaps, NMI 1.182 -> 1.214"],
+    )
+    attempts: int = Field(
+        description="Attempts started so far (a job is retried when its worker dies).",
+        examples=[1],
+    )
+    created: datetime = Field(description="When the job was accepted (UTC).")
+    started: datetime | None = Field(
+        None, description="When the last attempt started (UTC)."
+    )
+    finished: datetime | None = Field(
+        None, description="When the job succeeded, failed or was dismissed (UTC)."
+    )
+    updated: datetime = Field(description="Last change of this document (UTC).")
+    options: dict[str, Any] = Field(
+        description="Effective options of the job (see GET /v1/options), defaults included.",
+        examples=[{"cost": "mi", "optimizer": "greedy"}],
+    )
+    has_points: bool = Field(
+        description="True if the client sent conjugate points; otherwise they are matched "
+        "automatically.",
+        examples=[True],
+    )
+    links: list[Link] = Field(
+        description="The job itself and, once successful, every result with its media type."
+    )
+    error: ProblemDetails | None = Field(
+        None, description="Why the job failed, as a problem document (failed jobs only)."
+    )
+
+
+class JobList(BaseModel):
+    """One page of jobs, newest first."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "jobs": [],
+                    "numberMatched": 0,
+                    "numberReturned": 0,
+                    "links": [
+                        {
+                            "href": "/v1/jobs?limit=20&offset=0",
+                            "rel": "self",
+                            "type": "application/json",
+                            "title": "This page",
+                        }
+                    ],
+                }
+            ]
+        }
+    )
+
+    jobs: list[StatusInfo] = Field(description="The jobs of this page, newest first.")
+    numberMatched: int = Field(  # noqa: N815 (OGC member name)
+        description="Number of jobs matching the filter.", examples=[42]
+    )
+    numberReturned: int = Field(  # noqa: N815 (OGC member name)
+        description="Number of jobs in this page.", examples=[20]
+    )
+    links: list[Link] = Field(description="This page and the next and previous pages.")
+
+
+class OptionInfo(BaseModel):
+    """One option of a registration job (NodeODM ``/options`` style)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "name": "bins",
+                    "type": "integer",
+                    "default": 16,
+                    "minimum": 2,
+                    "maximum": 256,
+                    "exclusive_minimum": None,
+                    "exclusive_maximum": None,
+                    "choices": None,
+                    "help": "Grey-level bins per image of the joint histogram (M).",
+                }
+            ]
+        }
+    )
+
+    name: str = Field(description="Name of the option in the options object.", examples=["bins"])
+    type: Literal["integer", "number", "string", "boolean"] = Field(
+        description="JSON type of the value.", examples=["integer"]
+    )
+    default: Any = Field(description="Value used when the option is not given.", examples=[16])
+    minimum: float | None = Field(None, description="Smallest allowed value.", examples=[2])
+    maximum: float | None = Field(None, description="Largest allowed value.", examples=[256])
+    exclusive_minimum: float | None = Field(
+        None, description="The value must be greater than this.", examples=[None]
+    )
+    exclusive_maximum: float | None = Field(
+        None, description="The value must be smaller than this.", examples=[None]
+    )
+    choices: list[Any] | None = Field(
+        None, description="Allowed values, for options with a fixed set.", examples=[["mi", "ncc"]]
+    )
+    help: str = Field(description="What the option does, with its unit.")
+
+
+class Health(BaseModel):
+    """Liveness of the process."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"status": "ok"}]})
+
+    status: Literal["ok"] = Field(description="Always 'ok' when the process answers.")
+
+
+class Readiness(BaseModel):
+    """Readiness: the database, the queue and the data directory are usable."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"status": "ready", "checks": {"database": True, "queue": True, "storage": True}}
+            ]
+        }
+    )
+
+    status: Literal["ready"] = Field(description="Always 'ready' (otherwise the answer is 503).")
+    checks: dict[str, bool] = Field(
+        description="Result of each check: database, queue, storage.",
+        examples=[{"database": True, "queue": True, "storage": True}],
+    )

@@ -1,0 +1,111 @@
+"""Service settings, read from ``PWLREG_*`` environment variables (pydantic-settings).
+
+Every setting has a default that works on a fresh machine: a SQLite database and the artifacts of
+the jobs under ``./data``, one worker process per CPU core.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+def _default_workers() -> int:
+    return max(1, os.cpu_count() or 1)
+
+
+class Settings(BaseSettings):
+    """Settings of the pwlreg service.
+
+    Each field ``name`` is read from the environment variable ``PWLREG_<NAME>`` (case-insensitive)
+    or from a ``.env`` file in the working directory. Durations are in seconds, sizes in bytes.
+    """
+
+    model_config = SettingsConfigDict(
+        env_prefix="PWLREG_", env_file=".env", extra="ignore", frozen=True
+    )
+
+    data_dir: Path = Field(
+        Path("data"),
+        description="Directory of the SQLite database (default URL), the uploaded inputs and the "
+        "results of every job. Created if missing.",
+    )
+    database_url: str | None = Field(
+        None,
+        description="SQLAlchemy database URL of the job store. Default: "
+        "sqlite:///<data_dir>/pwlreg.db.",
+    )
+    workers: int = Field(
+        default_factory=_default_workers,
+        ge=1,
+        le=256,
+        description="Number of worker processes running registrations in parallel "
+        "(default: the number of CPU cores).",
+    )
+    max_upload_bytes: int = Field(
+        64 * 1024 * 1024,
+        ge=1024,
+        description="Largest accepted part of an upload (each image, the points, the options), in "
+        "bytes. A larger part is refused with 413 while it streams, before it is stored.",
+    )
+    max_pixels: int = Field(
+        40_000_000,
+        ge=4,
+        description="Largest accepted image, in pixels (width x height), checked from the image "
+        "header before decoding (decompression bombs are refused with 422).",
+    )
+    job_time_limit: float = Field(
+        1800.0,
+        gt=0,
+        description="Wall-clock limit of one attempt of a job, in seconds; a job over it fails.",
+    )
+    retention: float = Field(
+        7 * 24 * 3600.0,
+        gt=0,
+        description="Finished jobs (successful, failed, dismissed) older than this many seconds "
+        "are deleted with their files.",
+    )
+    lease_seconds: float = Field(
+        30.0,
+        gt=0,
+        description="Lease of a running job, in seconds. The worker renews it while it runs; a job "
+        "whose lease expired (its process died) goes back to the queue.",
+    )
+    max_attempts: int = Field(
+        3,
+        ge=1,
+        le=100,
+        description="Attempts of a job before it fails for good when its worker keeps dying.",
+    )
+    progress_interval: float = Field(
+        0.25,
+        gt=0,
+        description="Minimum interval between two progress (and lease) updates a worker writes "
+        "to the database, in seconds.",
+    )
+    maintenance_interval: float = Field(
+        60.0,
+        gt=0,
+        description="Interval of the maintenance pass (expired leases, retention), in seconds.",
+    )
+    runner: str = Field(
+        "core.pipeline:register",
+        description="Import path (module:function) of the registration function the workers "
+        "call. Change it only to wrap core, e.g. in tests.",
+    )
+
+    @model_validator(mode="after")
+    def _lease_outlives_progress(self) -> Settings:
+        if self.progress_interval * 2 > self.lease_seconds:
+            raise ValueError("lease_seconds must be at least twice progress_interval")
+        return self
+
+    @property
+    def resolved_database_url(self) -> str:
+        """The database URL, defaulting to a SQLite file in :attr:`data_dir`."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'pwlreg.db').resolve()}"

@@ -1,0 +1,158 @@
+"""Artifact storage on the local disk: uploaded inputs and results of every job.
+
+Layout under the data directory::
+
+    uploads/<random>/            a request being received (moved away or removed when done)
+    jobs/<id>/inputs/            reference, moving, points (as uploaded, bytes untouched)
+    jobs/<id>/work-<owner>/      results being written by one attempt
+    jobs/<id>/results/           mesh.json, registered.png, convergence.json (complete or absent)
+
+Every visible state is reached by a rename, so a reader never sees half a job or half a result.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+import uuid
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class ResultFile:
+    """One result of a successful job."""
+
+    name: str
+    filename: str
+    media_type: str
+    title: str
+
+
+RESULTS: dict[str, ResultFile] = {
+    r.name: r
+    for r in (
+        ResultFile("mesh", "mesh.json", "application/json", "Meshes, swaps and matching results"),
+        ResultFile("registered", "registered.png", "image/png", "Moving image registered onto "
+                   "the reference (alpha = inside the mesh)"),
+        ResultFile("convergence", "convergence.json", "application/json",
+                   "Consistency (MI, NMI) per iteration of the optimizer"),
+    )
+}
+"""The results of a job, by the key :func:`core.io.write_outputs` returns."""
+
+INPUTS = ("reference", "moving", "points")
+"""Names of the stored inputs of a job."""
+
+
+class LocalStorage:
+    """Job files under one root directory.
+
+    Parameters
+    ----------
+    root : pathlib.Path
+        The data directory; ``uploads/`` and ``jobs/`` are created under it.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self.uploads = self.root / "uploads"
+        self.jobs = self.root / "jobs"
+
+    def prepare(self) -> None:
+        """Create the directories; raise OSError if the data directory is not writable."""
+        self.uploads.mkdir(parents=True, exist_ok=True)
+        self.jobs.mkdir(parents=True, exist_ok=True)
+
+    def is_writable(self) -> bool:
+        """True if the data directory exists and accepts new files."""
+        return os.access(self.jobs, os.W_OK | os.X_OK) and os.access(self.uploads, os.W_OK)
+
+    # --- uploads -----------------------------------------------------------------------------
+
+    def new_staging(self) -> Path:
+        """A new empty directory for the files of one request."""
+        path = self.uploads / uuid.uuid4().hex
+        path.mkdir(parents=True)
+        return path
+
+    def commit_inputs(self, staging: Path, job_id: str) -> None:
+        """Move a staging directory to the inputs of ``job_id`` (atomic rename)."""
+        job_dir = self.jobs / job_id
+        job_dir.mkdir(parents=True, exist_ok=True)
+        os.replace(staging, job_dir / "inputs")
+
+    @staticmethod
+    def discard(path: Path) -> None:
+        """Remove a staging directory, ignoring a missing one."""
+        shutil.rmtree(path, ignore_errors=True)
+
+    def input_path(self, job_id: str, name: str) -> Path:
+        """Path of the stored input ``name`` (one of :data:`INPUTS`) of ``job_id``."""
+        if name not in INPUTS:
+            raise ValueError(f"unknown input {name!r}")
+        return self.jobs / job_id / "inputs" / name
+
+    # --- results -----------------------------------------------------------------------------
+
+    def work_dir(self, job_id: str, owner: str) -> Path:
+        """A fresh directory for the results of one attempt."""
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in owner)
+        path = self.jobs / job_id / f"work-{safe}"
+        shutil.rmtree(path, ignore_errors=True)
+        path.mkdir(parents=True)
+        return path
+
+    def publish_results(self, job_id: str, work_dir: Path) -> bool:
+        """Make the results of ``work_dir`` visible (atomic rename); False if another attempt
+        published first or the job's files were removed."""
+        target = self.jobs / job_id / "results"
+        if target.exists() or not work_dir.is_dir():
+            shutil.rmtree(work_dir, ignore_errors=True)
+            return False
+        try:
+            os.replace(work_dir, target)
+        except OSError:
+            shutil.rmtree(work_dir, ignore_errors=True)
+            return False
+        return True
+
+    def result_path(self, job_id: str, name: str) -> Path | None:
+        """Path of the result ``name`` (a key of :data:`RESULTS`), or None if absent."""
+        path = self.jobs / job_id / "results" / RESULTS[name].filename
+        return path if path.is_file() else None
+
+    # --- removal -----------------------------------------------------------------------------
+
+    def remove(self, job_id: str) -> None:
+        """Remove every file of ``job_id`` (inputs, results, attempts in progress)."""
+        shutil.rmtree(self.jobs / job_id, ignore_errors=True)
+
+    def sweep(self, is_known: Callable[[Iterable[str]], set[str]], older_than: float) -> int:
+        """Remove leftovers older than ``older_than`` seconds: staging directories of requests
+        that never finished, and job directories without a job row (crash between the file move
+        and the insert, or a deleted row). Returns the number of directories removed."""
+        limit = time.time() - older_than
+        removed = 0
+        for path in list(self.uploads.iterdir()) if self.uploads.is_dir() else []:
+            if _mtime(path) < limit:
+                shutil.rmtree(path, ignore_errors=True)
+                removed += 1
+        candidates = [
+            p for p in (self.jobs.iterdir() if self.jobs.is_dir() else []) if _mtime(p) < limit
+        ]
+        known = is_known([p.name for p in candidates])
+        for path in candidates:
+            if path.name not in known:
+                shutil.rmtree(path, ignore_errors=True)
+                removed += 1
+        return removed
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return float("inf")

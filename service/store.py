@@ -1,0 +1,564 @@
+"""The job store: one SQLAlchemy table, the source of truth of every job.
+
+A job row holds the status, the progress, the attempts and the lease of the worker running it.
+Every transition is a single conditional ``UPDATE`` (``... WHERE status = 'accepted'``), so that
+several processes (the API, the workers, later other machines) never step on each other: the
+first writer wins and the others see ``rowcount == 0``.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    Index,
+    Integer,
+    String,
+    Text,
+    create_engine,
+    event,
+    func,
+    select,
+    text,
+    update,
+)
+from sqlalchemy.engine import Engine
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.types import TypeDecorator
+
+
+class JobStatus(enum.StrEnum):
+    """Status words of OGC API - Processes."""
+
+    accepted = "accepted"
+    running = "running"
+    successful = "successful"
+    failed = "failed"
+    dismissed = "dismissed"
+
+
+FINISHED = (JobStatus.successful, JobStatus.failed, JobStatus.dismissed)
+
+
+def utcnow() -> datetime:
+    """The current time, timezone-aware UTC."""
+    return datetime.now(UTC)
+
+
+class UTCDateTime(TypeDecorator[datetime]):
+    """A datetime stored naive in UTC and read back timezone-aware (SQLite drops the zone)."""
+
+    impl = DateTime
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is None:
+            return None
+        if value.tzinfo is None:
+            raise ValueError("naive datetime given to the job store")
+        return value.astimezone(UTC).replace(tzinfo=None)
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        return None if value is None else value.replace(tzinfo=UTC)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class JobRow(Base):
+    """One registration job."""
+
+    __tablename__ = "jobs"
+
+    id: Mapped[str] = mapped_column(String(32), primary_key=True)
+    status: Mapped[str] = mapped_column(String(16))
+    stage: Mapped[str | None] = mapped_column(String(16))
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    message: Mapped[str | None] = mapped_column(Text)
+    error: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    options: Mapped[dict[str, Any]] = mapped_column(JSON)
+    has_points: Mapped[bool] = mapped_column(Boolean, default=False)
+    idempotency_key: Mapped[str | None] = mapped_column(String(255), unique=True)
+    request_hash: Mapped[str | None] = mapped_column(String(64))
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    max_attempts: Mapped[int] = mapped_column(Integer)
+    lease_owner: Mapped[str | None] = mapped_column(String(128))
+    lease_expires: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    created: Mapped[datetime] = mapped_column(UTCDateTime)
+    updated: Mapped[datetime] = mapped_column(UTCDateTime)
+    started: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    finished: Mapped[datetime | None] = mapped_column(UTCDateTime)
+
+    __table_args__ = (
+        Index("ix_jobs_status_created", "status", "created"),
+        Index("ix_jobs_created", "created"),
+    )
+
+
+@dataclass(frozen=True)
+class Job:
+    """A snapshot of one job row (detached from any database session)."""
+
+    id: str
+    status: JobStatus
+    stage: str | None
+    progress: float
+    message: str | None
+    error: dict[str, Any] | None
+    options: dict[str, Any]
+    has_points: bool
+    idempotency_key: str | None
+    request_hash: str | None
+    attempts: int
+    max_attempts: int
+    lease_owner: str | None
+    lease_expires: datetime | None
+    created: datetime
+    updated: datetime
+    started: datetime | None
+    finished: datetime | None
+
+    @classmethod
+    def from_row(cls, row: JobRow) -> Job:
+        values = {name: getattr(row, name) for name in cls.__dataclass_fields__}
+        values["status"] = JobStatus(row.status)
+        return cls(**values)
+
+    @property
+    def duration(self) -> float | None:
+        """Seconds from the start of the last attempt to the end, once finished."""
+        if self.started is None or self.finished is None:
+            return None
+        return (self.finished - self.started).total_seconds()
+
+
+class IdempotencyConflict(Exception):
+    """An idempotency key was reused with a different request."""
+
+    def __init__(self, job: Job) -> None:
+        super().__init__(f"idempotency key already used by job {job.id} for another request")
+        self.job = job
+
+
+def _sqlite_pragmas(dbapi_connection: Any, connection_record: Any) -> None:
+    cursor = dbapi_connection.cursor()
+    # WAL lets readers and one writer work together across processes; FULL sync makes a
+    # committed job survive a power cut; the busy timeout makes writers wait instead of failing.
+    cursor.execute("PRAGMA journal_mode=WAL")
+    cursor.execute("PRAGMA synchronous=FULL")
+    cursor.execute("PRAGMA busy_timeout=30000")
+    cursor.close()
+
+
+def make_engine(url: str) -> Engine:
+    """Create an engine; SQLite gets WAL mode and a busy timeout for multi-process use."""
+    if url.startswith("sqlite"):
+        engine = create_engine(url, connect_args={"timeout": 30, "check_same_thread": False})
+        event.listen(engine, "connect", _sqlite_pragmas)
+        return engine
+    return create_engine(url, pool_pre_ping=True)
+
+
+class JobStore:
+    """Create, read and move jobs through their life cycle.
+
+    Parameters
+    ----------
+    engine : sqlalchemy.engine.Engine
+        Engine of the job database; tables are created by :meth:`create_schema`.
+    """
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self._sessions = sessionmaker(engine, expire_on_commit=False)
+
+    @classmethod
+    def from_url(cls, url: str) -> JobStore:
+        """A store over a new engine for ``url``."""
+        return cls(make_engine(url))
+
+    def create_schema(self) -> None:
+        """Create the tables if they do not exist."""
+        Base.metadata.create_all(self.engine)
+
+    def dispose(self) -> None:
+        """Close the connections of the engine."""
+        self.engine.dispose()
+
+    def ping(self) -> bool:
+        """True if the database answers a trivial query."""
+        with self.engine.connect() as connection:
+            connection.execute(text("SELECT 1"))
+        return True
+
+    def _update(self, statement: Any) -> int:
+        with self._sessions.begin() as session:
+            return session.execute(statement).rowcount
+
+    # --- creation and reading ----------------------------------------------------------------
+
+    def create(
+        self,
+        job_id: str,
+        options: dict[str, Any],
+        has_points: bool,
+        max_attempts: int,
+        idempotency_key: str | None = None,
+        request_hash: str | None = None,
+    ) -> tuple[Job, bool]:
+        """Insert an accepted job, or return the job already created with the same key.
+
+        Returns
+        -------
+        job : Job
+            The new job, or the existing one for ``idempotency_key``.
+        created : bool
+            False if the job existed already.
+
+        Raises
+        ------
+        IdempotencyConflict
+            If the key is known but was sent with a different request (``request_hash``).
+        """
+        if idempotency_key is not None:
+            existing = self.get_by_idempotency_key(idempotency_key)
+            if existing is not None:
+                return self._replay(existing, request_hash), False
+        now = utcnow()
+        row = JobRow(
+            id=job_id,
+            status=JobStatus.accepted.value,
+            stage=None,
+            progress=0.0,
+            options=options,
+            has_points=has_points,
+            idempotency_key=idempotency_key,
+            request_hash=request_hash,
+            attempts=0,
+            max_attempts=max_attempts,
+            created=now,
+            updated=now,
+        )
+        try:
+            with self._sessions.begin() as session:
+                session.add(row)
+        except IntegrityError:
+            # Two requests with the same key raced; the other one won.
+            existing = (
+                self.get_by_idempotency_key(idempotency_key) if idempotency_key else None
+            )
+            if existing is None:
+                raise
+            return self._replay(existing, request_hash), False
+        return Job.from_row(row), True
+
+    @staticmethod
+    def _replay(existing: Job, request_hash: str | None) -> Job:
+        if existing.request_hash != request_hash:
+            raise IdempotencyConflict(existing)
+        return existing
+
+    def get(self, job_id: str) -> Job | None:
+        """The job ``job_id``, or None."""
+        with self._sessions() as session:
+            row = session.get(JobRow, job_id)
+            return None if row is None else Job.from_row(row)
+
+    def get_by_idempotency_key(self, key: str) -> Job | None:
+        """The job created with idempotency key ``key``, or None."""
+        with self._sessions() as session:
+            row = session.scalars(select(JobRow).where(JobRow.idempotency_key == key)).first()
+            return None if row is None else Job.from_row(row)
+
+    def list(
+        self,
+        statuses: Iterable[JobStatus] = (),
+        limit: int = 20,
+        offset: int = 0,
+    ) -> tuple[list[Job], int]:
+        """Jobs newest first, optionally only those with one of ``statuses``.
+
+        Returns
+        -------
+        jobs : list of Job
+            At most ``limit`` jobs, skipping the first ``offset``.
+        matched : int
+            Number of jobs matching the filter.
+        """
+        wanted = [s.value for s in statuses]
+        query = select(JobRow)
+        count = select(func.count()).select_from(JobRow)
+        if wanted:
+            query = query.where(JobRow.status.in_(wanted))
+            count = count.where(JobRow.status.in_(wanted))
+        query = query.order_by(JobRow.created.desc(), JobRow.id.desc()).limit(limit).offset(offset)
+        with self._sessions() as session:
+            rows = session.scalars(query).all()
+            matched = session.execute(count).scalar_one()
+        return [Job.from_row(r) for r in rows], int(matched)
+
+    def count_by_status(self) -> dict[JobStatus, int]:
+        """Number of jobs in each status (every status present, zeros included)."""
+        with self._sessions() as session:
+            pairs = session.execute(
+                select(JobRow.status, func.count()).group_by(JobRow.status)
+            ).all()
+        counts = {status: 0 for status in JobStatus}
+        for status, n in pairs:
+            counts[JobStatus(status)] = int(n)
+        return counts
+
+    def next_accepted(self, limit: int, exclude: Sequence[str] = ()) -> list[str]:
+        """Ids of the oldest accepted jobs (first in, first out), skipping ``exclude``."""
+        query = select(JobRow.id).where(JobRow.status == JobStatus.accepted.value)
+        if exclude:
+            query = query.where(JobRow.id.not_in(list(exclude)))
+        query = query.order_by(JobRow.created, JobRow.id).limit(limit)
+        with self._sessions() as session:
+            return list(session.scalars(query).all())
+
+    # --- transitions by a worker --------------------------------------------------------------
+
+    def claim(self, job_id: str, owner: str, lease_seconds: float) -> Job | None:
+        """Move an accepted job to running under ``owner``'s lease; None if it is not accepted."""
+        now = utcnow()
+        n = self._update(
+            update(JobRow)
+            .where(JobRow.id == job_id, JobRow.status == JobStatus.accepted.value)
+            .values(
+                status=JobStatus.running.value,
+                attempts=JobRow.attempts + 1,
+                lease_owner=owner,
+                lease_expires=now + timedelta(seconds=lease_seconds),
+                started=now,
+                updated=now,
+                stage=None,
+                progress=0.0,
+            )
+        )
+        return self.get(job_id) if n == 1 else None
+
+    def renew(
+        self,
+        job_id: str,
+        owner: str,
+        lease_seconds: float,
+        stage: str | None = None,
+        progress: float | None = None,
+    ) -> bool:
+        """Extend ``owner``'s lease and record the progress; False if the job is no longer
+        running under this owner (dismissed, or taken over after the lease expired)."""
+        now = utcnow()
+        values: dict[str, Any] = {
+            "lease_expires": now + timedelta(seconds=lease_seconds),
+            "updated": now,
+        }
+        if stage is not None:
+            values["stage"] = stage
+        if progress is not None:
+            values["progress"] = progress
+        return (
+            self._update(
+                update(JobRow)
+                .where(
+                    JobRow.id == job_id,
+                    JobRow.status == JobStatus.running.value,
+                    JobRow.lease_owner == owner,
+                )
+                .values(**values)
+            )
+            == 1
+        )
+
+    def finish(
+        self,
+        job_id: str,
+        owner: str,
+        status: JobStatus,
+        message: str | None,
+        error: dict[str, Any] | None = None,
+    ) -> bool:
+        """End ``owner``'s attempt with ``status`` (successful or failed); False if the job is
+        no longer running under this owner."""
+        now = utcnow()
+        values: dict[str, Any] = {
+            "status": status.value,
+            "message": message,
+            "error": error,
+            "finished": now,
+            "updated": now,
+            "lease_owner": None,
+            "lease_expires": None,
+        }
+        if status == JobStatus.successful:
+            values["progress"] = 100.0
+        return (
+            self._update(
+                update(JobRow)
+                .where(
+                    JobRow.id == job_id,
+                    JobRow.status == JobStatus.running.value,
+                    JobRow.lease_owner == owner,
+                )
+                .values(**values)
+            )
+            == 1
+        )
+
+    def release(self, job_id: str, owner: str, message: str) -> bool:
+        """Give a running job back to the queue without counting the attempt (the worker is
+        shutting down, not failing)."""
+        return (
+            self._update(
+                update(JobRow)
+                .where(
+                    JobRow.id == job_id,
+                    JobRow.status == JobStatus.running.value,
+                    JobRow.lease_owner == owner,
+                )
+                .values(
+                    status=JobStatus.accepted.value,
+                    attempts=JobRow.attempts - 1,
+                    lease_owner=None,
+                    lease_expires=None,
+                    stage=None,
+                    progress=0.0,
+                    message=message,
+                    updated=utcnow(),
+                )
+            )
+            == 1
+        )
+
+    # --- transitions by the API and the maintenance pass ------------------------------------
+
+    def dismiss(self, job_id: str) -> Job | None:
+        """Mark a job dismissed (cancelled by its client); None if it does not exist."""
+        now = utcnow()
+        self._update(
+            update(JobRow)
+            .where(JobRow.id == job_id, JobRow.status != JobStatus.dismissed.value)
+            .values(
+                status=JobStatus.dismissed.value,
+                message="dismissed by the client",
+                finished=now,
+                updated=now,
+                lease_owner=None,
+                lease_expires=None,
+            )
+        )
+        return self.get(job_id)
+
+    def recover_expired(self, now: datetime | None = None) -> tuple[list[str], list[str]]:
+        """Requeue running jobs whose lease expired; fail those out of attempts.
+
+        Returns
+        -------
+        requeued, failed : list of str
+            Ids of the jobs put back to ``accepted`` and of those that failed for good.
+        """
+        now = now or utcnow()
+        with self._sessions() as session:
+            expired = session.execute(
+                select(JobRow.id, JobRow.attempts, JobRow.max_attempts).where(
+                    JobRow.status == JobStatus.running.value, JobRow.lease_expires < now
+                )
+            ).all()
+        requeued: list[str] = []
+        failed: list[str] = []
+        for job_id, attempts, max_attempts in expired:
+            # The same conditions again, so that a lease renewed meanwhile wins.
+            still_expired = (
+                JobRow.id == job_id,
+                JobRow.status == JobStatus.running.value,
+                JobRow.lease_expires < now,
+            )
+            if attempts >= max_attempts:
+                message = (
+                    f"the worker running this job stopped {attempts} times (process killed, "
+                    f"out of memory or server restarted); gave up after {max_attempts} attempts"
+                )
+                error = {
+                    "type": "urn:pwlreg:problem:attempts-exhausted",
+                    "title": "Job attempts exhausted",
+                    "status": 500,
+                    "detail": message,
+                }
+                n = self._update(
+                    update(JobRow)
+                    .where(*still_expired)
+                    .values(
+                        status=JobStatus.failed.value,
+                        message=message,
+                        error=error,
+                        finished=now,
+                        updated=now,
+                        lease_owner=None,
+                        lease_expires=None,
+                    )
+                )
+                if n:
+                    failed.append(job_id)
+            else:
+                n = self._update(
+                    update(JobRow)
+                    .where(*still_expired)
+                    .values(
+                        status=JobStatus.accepted.value,
+                        message=f"requeued after attempt {attempts} of {max_attempts} was "
+                        "interrupted",
+                        stage=None,
+                        progress=0.0,
+                        updated=now,
+                        lease_owner=None,
+                        lease_expires=None,
+                    )
+                )
+                if n:
+                    requeued.append(job_id)
+        return requeued, failed
+
+    def expired_finished(self, older_than: datetime, limit: int = 500) -> list[str]:
+        """Ids of finished jobs whose end is before ``older_than``."""
+        with self._sessions() as session:
+            return list(
+                session.scalars(
+                    select(JobRow.id)
+                    .where(
+                        JobRow.status.in_([s.value for s in FINISHED]),
+                        JobRow.finished < older_than,
+                    )
+                    .limit(limit)
+                ).all()
+            )
+
+    def delete(self, job_ids: Sequence[str]) -> int:
+        """Delete job rows; returns how many existed."""
+        if not job_ids:
+            return 0
+        with self._sessions.begin() as session:
+            n = 0
+            for job_id in job_ids:
+                row = session.get(JobRow, job_id)
+                if row is not None:
+                    session.delete(row)
+                    n += 1
+            return n
+
+    def existing_ids(self, job_ids: Sequence[str]) -> set[str]:
+        """The subset of ``job_ids`` that have a row."""
+        if not job_ids:
+            return set()
+        with self._sessions() as session:
+            return set(session.scalars(select(JobRow.id).where(JobRow.id.in_(list(job_ids)))))
+

@@ -1,0 +1,356 @@
+"""The worker: runs one job in a worker process, from its stored inputs to its stored results.
+
+:func:`run_job` claims the job (accepted -> running, under a lease), reads the inputs, calls the
+registration function (``core.pipeline.register`` unless the settings name another) and stores
+the results. The progress callback it passes to the registration writes the stage and progress
+to the job row, renews the lease and checks, at most every ``progress_interval`` seconds, that
+the job was not dismissed, is within its time limit and that the service is not shutting down;
+otherwise it raises, which stops the registration at its next progress report.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import shutil
+import signal
+import socket
+import threading
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from pydantic import ValidationError
+
+from core.errors import InputError
+from core.options import RegistrationOptions
+from service.settings import Settings
+from service.storage import RESULTS, LocalStorage
+from service.store import JobStatus, JobStore
+
+log = logging.getLogger(__name__)
+
+STAGES: dict[str, tuple[float, float]] = {
+    "matching": (0.0, 20.0),
+    "triangulating": (20.0, 25.0),
+    "optimizing": (25.0, 90.0),
+    "rendering": (90.0, 99.0),
+}
+"""Stage -> (start, end) of the overall progress in percent."""
+
+
+class Runner(Protocol):
+    """The registration function (``core.pipeline.register``'s signature)."""
+
+    def __call__(
+        self,
+        reference: Any,
+        moving: Any,
+        points: Any = None,
+        options: RegistrationOptions | None = None,
+        progress: Callable[[str, float], None] | None = None,
+    ) -> Any: ...
+
+
+class JobInterrupted(BaseException):
+    """Raised from the progress callback to stop a registration.
+
+    A ``BaseException`` (like ``asyncio.CancelledError``), so that an ``except Exception`` in
+    the registration code cannot swallow it.
+    """
+
+
+class JobDismissed(JobInterrupted):
+    """The client dismissed (cancelled) the job."""
+
+
+class LeaseLost(JobInterrupted):
+    """The job is no longer ours: its lease expired and another attempt took it over."""
+
+
+class WorkerStopping(JobInterrupted):
+    """The service is shutting down; the job goes back to the queue."""
+
+
+class TimeLimitExceeded(JobInterrupted):
+    """The attempt ran longer than the job time limit."""
+
+
+def resolve_runner(path: str) -> Runner:
+    """Import a ``module:function`` path (``core.pipeline:register``)."""
+    module_name, _, attr = path.partition(":")
+    if not module_name or not attr:
+        raise ValueError(f"runner must be 'module:function', got {path!r}")
+    return getattr(importlib.import_module(module_name), attr)
+
+
+@dataclass
+class WorkerContext:
+    """What a worker needs, built once per worker process.
+
+    Parameters
+    ----------
+    settings : Settings
+    store : JobStore
+    storage : LocalStorage
+    runner : callable, optional
+        The registration function; None means "import ``settings.runner`` on first use".
+    stop_event : threading.Event-like, optional
+        Set by the service when it shuts down.
+    """
+
+    settings: Settings
+    store: JobStore
+    storage: LocalStorage
+    runner: Runner | None = None
+    stop_event: Any = None
+
+    @classmethod
+    def from_settings(
+        cls, settings: Settings, runner: Runner | None = None, stop_event: Any = None
+    ) -> WorkerContext:
+        return cls(
+            settings=settings,
+            store=JobStore.from_url(settings.resolved_database_url),
+            storage=LocalStorage(settings.data_dir),
+            runner=runner,
+            stop_event=stop_event,
+        )
+
+    def get_runner(self) -> Runner:
+        if self.runner is None:
+            self.runner = resolve_runner(self.settings.runner)
+        return self.runner
+
+
+class ProgressReporter:
+    """The progress callback of one attempt: records progress, renews the lease, and raises a
+    :class:`JobInterrupted` when the attempt must stop.
+
+    Parameters
+    ----------
+    context : WorkerContext
+    job_id, owner : str
+        The job and the lease owner of this attempt.
+    clock : callable
+        Monotonic clock in seconds.
+    """
+
+    def __init__(
+        self,
+        context: WorkerContext,
+        job_id: str,
+        owner: str,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.context = context
+        self.job_id = job_id
+        self.owner = owner
+        self.clock = clock
+        self.started = clock()
+        self.last_write = -float("inf")
+        self.stage: str | None = None
+        self.percent = 0.0
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        settings = self.context.settings
+        stop = self.context.stop_event
+        if stop is not None and stop.is_set():
+            raise WorkerStopping("the service is shutting down")
+        now = self.clock()
+        if now - self.started > settings.job_time_limit:
+            raise TimeLimitExceeded(
+                f"the job ran longer than the time limit of {settings.job_time_limit:g} s"
+            )
+        stage_changed = False
+        if stage in STAGES:
+            stage_changed = stage != self.stage
+            self.stage = stage
+            start, end = STAGES[stage]
+            f = min(max(float(fraction), 0.0), 1.0) if fraction == fraction else 0.0
+            self.percent = max(self.percent, start + f * (end - start))
+        if stage_changed or now - self.last_write >= settings.progress_interval:
+            self.write(now)
+
+    def write(self, now: float | None = None) -> None:
+        """Record the progress and renew the lease now; raise if the job is no longer ours."""
+        self.last_write = self.clock() if now is None else now
+        store = self.context.store
+        if store.renew(
+            self.job_id,
+            self.owner,
+            self.context.settings.lease_seconds,
+            stage=self.stage,
+            progress=round(self.percent, 1),
+        ):
+            return
+        job = store.get(self.job_id)
+        if job is None or job.status == JobStatus.dismissed:
+            raise JobDismissed("the job was dismissed")
+        raise LeaseLost("the job's lease expired and another attempt took it over")
+
+
+def _problem(slug: str, title: str, status: int, detail: str, field: str | None = None) -> dict:
+    doc: dict[str, Any] = {
+        "type": f"urn:pwlreg:problem:{slug}",
+        "title": title,
+        "status": status,
+        "detail": detail,
+    }
+    if field is not None:
+        doc["field"] = field
+    return doc
+
+
+def _owner() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
+
+
+def run_job(job_id: str, context: WorkerContext) -> str:
+    """Run one job to its end and return its final status (or ``"skipped"``).
+
+    A job that is not ``accepted`` any more (dismissed meanwhile, or claimed by another worker)
+    is skipped. Errors about the input end the job as failed with a readable message; nothing
+    raised by the registration escapes this function.
+    """
+    from core.io import load_points, read_image, write_outputs
+
+    store, storage, settings = context.store, context.storage, context.settings
+    owner = _owner()
+    job = store.claim(job_id, owner, settings.lease_seconds)
+    if job is None:
+        return "skipped"
+    log.info("job %s: attempt %d started by %s", job_id, job.attempts, owner)
+    reporter = ProgressReporter(context, job_id, owner)
+
+    def fail(error: dict[str, Any]) -> str:
+        if store.finish(job_id, owner, JobStatus.failed, error["detail"], error):
+            return JobStatus.failed.value
+        return _settle_lost(job_id, context)
+
+    try:
+        reference = read_image(
+            storage.input_path(job_id, "reference"), settings.max_pixels, field="reference"
+        )
+        moving = read_image(
+            storage.input_path(job_id, "moving"), settings.max_pixels, field="moving"
+        )
+        points = None
+        if job.has_points:
+            points = load_points(
+                storage.input_path(job_id, "points").read_bytes(), field="points"
+            )
+        options = RegistrationOptions.model_validate(job.options)
+        runner = context.get_runner()
+        result = runner(reference, moving, points=points, options=options, progress=reporter)
+        reporter.write()  # last check: dismissed while the last stage ran?
+        work = storage.work_dir(job_id, owner)
+        written = write_outputs(result, work)
+        missing = [key for key in RESULTS if key not in written]
+        if missing:
+            raise RuntimeError(f"write_outputs did not write {', '.join(missing)}")
+        reporter.write()
+        storage.publish_results(job_id, work)
+        summary = result.summary()
+        if store.finish(job_id, owner, JobStatus.successful, summary):
+            log.info("job %s: successful: %s", job_id, summary)
+            return JobStatus.successful.value
+        return _settle_lost(job_id, context)
+    except JobDismissed:
+        storage.remove(job_id)
+        log.info("job %s: stopped, dismissed by the client", job_id)
+        return JobStatus.dismissed.value
+    except LeaseLost:
+        log.warning("job %s: lease lost, attempt by %s abandoned", job_id, owner)
+        return "skipped"
+    except WorkerStopping:
+        store.release(job_id, owner, "requeued: the service was shut down while the job ran")
+        log.info("job %s: released for the next start", job_id)
+        return JobStatus.accepted.value
+    except TimeLimitExceeded as exc:
+        return fail(_problem("time-limit-exceeded", "Time limit exceeded", 500, str(exc)))
+    except InputError as exc:
+        field = getattr(exc, "field", None)
+        detail = f"{field}: {exc}" if field else str(exc)
+        return fail(_problem("registration-failed", "Input cannot be registered", 422, detail,
+                             field))
+    except ValidationError as exc:
+        return fail(_problem("registration-failed", "Invalid options", 422, str(exc), "options"))
+    except Exception as exc:  # noqa: BLE001 (a bug must fail the job, not the worker)
+        log.error("job %s: internal error\n%s", job_id, traceback.format_exc())
+        return fail(
+            _problem(
+                "internal-error",
+                "Internal error",
+                500,
+                f"internal error while registering: {type(exc).__name__}: {exc}",
+            )
+        )
+    finally:
+        # Attempts that did not publish leave no work directory behind.
+        for path in (storage.jobs / job_id).glob("work-*"):
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+
+
+def _settle_lost(job_id: str, context: WorkerContext) -> str:
+    """The final write found the job not ours any more: remove files of a dismissed job."""
+    job = context.store.get(job_id)
+    if job is None or job.status == JobStatus.dismissed:
+        context.storage.remove(job_id)
+        return JobStatus.dismissed.value
+    return "skipped"
+
+
+# --- glue for a pool of worker processes ---------------------------------------------------
+
+_PROCESS_CONTEXT: WorkerContext | None = None
+
+
+def init_process(settings: Settings, stop_event: Any = None) -> None:
+    """Initializer of a worker process: build its context, follow the parent's lifetime.
+
+    Ctrl-C in a terminal reaches the whole process group; the workers ignore it and let the
+    service stop them through ``stop_event``. A worker exits when its parent process dies, so
+    that a killed service leaves no orphan running jobs (their leases expire and the next start
+    requeues them).
+    """
+    global _PROCESS_CONTEXT
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
+    try:
+        _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
+    except Exception:  # noqa: BLE001 (reported when a job runs)
+        log.exception("cannot import the runner %s", settings.runner)
+    _watch_parent()
+
+
+def _watch_parent() -> None:
+    import multiprocessing
+
+    parent = multiprocessing.parent_process()
+    if parent is None:
+        return
+
+    def watch() -> None:
+        parent.join()
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def run_in_process(job_id: str) -> str:
+    """Entry point of the pool: :func:`run_job` with this process's context."""
+    if _PROCESS_CONTEXT is None:
+        raise RuntimeError("worker process not initialised (init_process)")
+    return run_job(job_id, _PROCESS_CONTEXT)
+
+
+def ping() -> int:
+    """A no-op task that makes the pool start its processes ahead of the first job."""
+    return os.getpid()
