@@ -227,7 +227,9 @@ def estimate_affine_fundamental(
     once the best model's inlier ratio ``w`` makes one more all-inlier sample unlikely
     (``iterations >= log(1 - confidence) / log(1 - w^4)``) or at ``max_iterations``. The best
     model is then refitted by total least squares on its inliers, repeatedly until the inlier
-    set stops changing (at most 10 times).
+    set stops changing (at most 10 times). When every sample is degenerate (all pairs related
+    by one 2-D affine map, so that no hyperplane is determined), the total-least-squares
+    hyperplane of all pairs is returned: it fits them all.
 
     Parameters
     ----------
@@ -292,7 +294,11 @@ def estimate_affine_fundamental(
             w = float(np.count_nonzero(r2[:, i] <= tn2)) / n_pairs
             needed = _required_iterations(w, confidence, 4)
     if best is None:
-        raise InputError("the point pairs are degenerate: no 4 of them span a hyperplane", "points")
+        # Every sample was degenerate: the pairs are related by one 2-D affine map (no parallax),
+        # so they lie on a 2-plane of (x', y', x, y) and any hyperplane through it fits them.
+        # The total-least-squares hyperplane of all pairs is one of those.
+        best = _tls_hyperplane(Xn)
+        best_cost = float(np.minimum((Xn @ best[0] + best[1]) ** 2, tn2).sum())
 
     normal, offset = best
     inl = np.abs(Xn @ normal + offset) ** 2 <= tn2

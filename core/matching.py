@@ -270,8 +270,8 @@ def detect_corners(
             gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
             (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
         ).reshape(-1, 2).astype(np.float64)
-        # A refinement that wanders far means no well-defined corner there: keep the detection.
-        moved = np.linalg.norm(refined - pts, axis=1) > 2.0 / scale
+        # A refinement that leaves its 11x11 window found no corner there: keep the detection.
+        moved = np.linalg.norm(refined - pts, axis=1) > 5.0
         pts = np.where(moved[:, None], pts, refined)
     return pts
 

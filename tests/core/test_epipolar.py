@@ -1,0 +1,212 @@
+"""Tests of core.epipolar: affine MSAC and projective USAC fundamental matrices."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from core.epipolar import (
+    MIN_PAIRS,
+    estimate_affine_fundamental,
+    estimate_fundamental,
+    estimate_projective_fundamental,
+    fit_affine_fundamental,
+    sampson_distance,
+)
+from core.errors import InputError
+
+THRESHOLD = 1.5
+NOISE = 0.3  # px, per coordinate
+MAX_INLIER_LOSS = 0.01  # stated rate: at most 1 % of true pairs rejected at 5 sigma
+
+
+def rotation(rx: float, ry: float, rz: float) -> np.ndarray:
+    cx, sx, cy, sy, cz, sz = np.cos(rx), np.sin(rx), np.cos(ry), np.sin(ry), np.cos(rz), np.sin(rz)
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    return Rz @ Ry @ Rx
+
+
+def affine_scene(rng: np.random.Generator, n: int, angles=(0.05, 0.15, 0.03)):
+    """Two affine cameras viewing random 3-D points; returns ref, mov and the true hyperplane."""
+    X = rng.uniform(-1, 1, (n, 3)) * [400, 300, 150]
+    M1 = np.eye(3)[:2]
+    M2 = 0.9 * rotation(*angles)[:2]
+    t1, t2 = np.array([500.0, 400.0]), np.array([520.0, 380.0])
+    return X @ M1.T + t1, X @ M2.T + t2
+
+
+def perspective_scene(rng: np.random.Generator, n: int):
+    """Two pinhole cameras 10 deg apart around a 3-D point cloud; returns ref, mov, true F."""
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    X = rng.uniform(-1, 1, (n, 3)) * [3, 2, 1.5] + [0, 0, 8]
+    R = rotation(0.02, 0.17, 0.01)
+    t = np.array([-1.2, 0.1, 0.2])
+
+    def project(P):
+        x = X @ P[:, :3].T + P[:, 3]
+        return x[:, :2] / x[:, 2:3]
+
+    ref = project(K @ np.hstack([np.eye(3), np.zeros((3, 1))]))
+    mov = project(K @ np.hstack([R, t[:, None]]))
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    return ref, mov, F / np.linalg.norm(F)
+
+
+def inject_outliers(rng, ref, mov, F, share, min_residual):
+    """Move a share of the moving points off their epipolar line by at least min_residual."""
+    mov = mov.copy()
+    n = len(ref)
+    out = np.zeros(n, bool)
+    out[rng.choice(n, int(share * n), replace=False)] = True
+    for i in np.flatnonzero(out):
+        while True:
+            cand = mov[i] + rng.uniform(-60, 60, 2)
+            if sampson_distance(F, ref[i : i + 1], cand[None])[0] >= min_residual:
+                mov[i] = cand
+                break
+    return mov, out
+
+
+def test_sampson_distance_of_affine_f_is_the_hyperplane_distance():
+    rng = np.random.default_rng(0)
+    ref, mov = rng.uniform(0, 500, (50, 2)), rng.uniform(0, 500, (50, 2))
+    a, b, c, d, e = 0.3, -0.5, 0.2, 0.4, 12.0
+    F = np.array([[0, 0, a], [0, 0, b], [c, d, e]])
+    expected = np.abs(a * mov[:, 0] + b * mov[:, 1] + c * ref[:, 0] + d * ref[:, 1] + e)
+    expected /= np.sqrt(a * a + b * b + c * c + d * d)
+    np.testing.assert_allclose(sampson_distance(F, ref, mov), expected, rtol=1e-12)
+
+
+def test_fit_affine_fundamental_is_exact_on_affine_cameras():
+    ref, mov = affine_scene(np.random.default_rng(1), 30)
+    F = fit_affine_fundamental(ref, mov)
+    assert F[0, 0] == F[0, 1] == F[1, 0] == F[1, 1] == 0.0
+    assert np.linalg.norm([F[0, 2], F[1, 2], F[2, 0], F[2, 1]]) == pytest.approx(1.0)
+    # Convention x_mov^T F x_ref = 0.
+    r = np.einsum("ni,ij,nj->n", np.c_[mov, np.ones(30)], F, np.c_[ref, np.ones(30)])
+    assert np.max(np.abs(r)) < 1e-8
+
+
+@pytest.mark.parametrize("share", [0.0, 0.3, 0.6])
+def test_affine_msac_rejects_every_outlier_and_keeps_the_inliers(share):
+    rng = np.random.default_rng(2)
+    ref, mov = affine_scene(rng, 800)
+    F_true = fit_affine_fundamental(ref, mov)
+    ref_n = ref + rng.normal(0, NOISE, ref.shape)
+    mov_n = mov + rng.normal(0, NOISE, mov.shape)
+    mov_n, out = inject_outliers(rng, ref_n, mov_n, F_true, share, 3 * THRESHOLD)
+    model = estimate_affine_fundamental(ref_n, mov_n, threshold=THRESHOLD, seed=0)
+    inl = model.inliers(ref_n, mov_n)
+    assert model.kind == "affine"
+    assert not np.any(inl & out), "an injected outlier survived"
+    assert np.mean(~inl[~out]) <= MAX_INLIER_LOSS
+    assert model.num_inliers == np.count_nonzero(inl)
+    assert model.rms < 2 * NOISE
+    # The refit is close to the truth: true pairs (noise-free) have tiny residuals.
+    assert np.median(model.residuals(ref, mov)) < 0.1
+
+
+def test_affine_msac_adapts_its_iterations():
+    rng = np.random.default_rng(3)
+    ref, mov = affine_scene(rng, 500)
+    mov = mov + rng.normal(0, NOISE, mov.shape)
+    clean = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=0)
+    F_true = fit_affine_fundamental(ref, mov)
+    mov_o, _ = inject_outliers(rng, ref, mov, F_true, 0.6, 3 * THRESHOLD)
+    dirty = estimate_affine_fundamental(ref, mov_o, THRESHOLD, seed=0)
+    assert clean.iterations <= 128  # one batch suffices at 0 % outliers
+    assert dirty.iterations > clean.iterations
+    assert dirty.iterations <= 10_000
+
+
+def test_affine_msac_is_deterministic_per_seed():
+    rng = np.random.default_rng(4)
+    ref, mov = affine_scene(rng, 300)
+    mov = mov + rng.normal(0, 2.0, mov.shape)
+    a = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=7)
+    b = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=7)
+    np.testing.assert_array_equal(a.matrix, b.matrix)
+
+
+@pytest.mark.parametrize("share", [0.0, 0.4])
+def test_projective_usac_rejects_every_outlier_and_keeps_the_inliers(share):
+    rng = np.random.default_rng(5)
+    ref, mov, F_true = perspective_scene(rng, 600)
+    ref_n = ref + rng.normal(0, NOISE, ref.shape)
+    mov_n = mov + rng.normal(0, NOISE, mov.shape)
+    mov_n, out = inject_outliers(rng, ref_n, mov_n, F_true, share, 3 * THRESHOLD)
+    model = estimate_projective_fundamental(ref_n, mov_n, threshold=THRESHOLD, seed=0)
+    inl = model.inliers(ref_n, mov_n)
+    assert model.kind == "projective"
+    assert np.linalg.norm(model.matrix) == pytest.approx(1.0)
+    assert not np.any(inl & out)
+    assert np.mean(~inl[~out]) <= MAX_INLIER_LOSS
+    assert np.median(model.residuals(ref, mov)) < 0.2
+    again = estimate_projective_fundamental(ref_n, mov_n, threshold=THRESHOLD, seed=0)
+    np.testing.assert_array_equal(model.matrix, again.matrix)
+
+
+def test_affine_model_misses_strong_perspective_and_projective_does_not():
+    """Why the projective model is the default for close-range photos."""
+    rng = np.random.default_rng(6)
+    ref, mov, _ = perspective_scene(rng, 400)
+    affine = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=0)
+    projective = estimate_projective_fundamental(ref, mov, THRESHOLD, seed=0)
+    assert projective.num_inliers == 400
+    assert affine.num_inliers < projective.num_inliers
+
+
+@pytest.mark.parametrize("kind", ["affine", "projective"])
+def test_too_few_or_degenerate_pairs_are_an_input_error(kind):
+    n = MIN_PAIRS[kind] - 1
+    rng = np.random.default_rng(0)
+    with pytest.raises(InputError, match=f"at least {MIN_PAIRS[kind]}"):
+        estimate_fundamental(rng.uniform(0, 100, (n, 2)), rng.uniform(0, 100, (n, 2)), kind)
+    with pytest.raises(InputError, match="finite"):
+        bad = rng.uniform(0, 100, (20, 2))
+        bad[3, 0] = np.nan
+        estimate_fundamental(bad, bad, kind)
+
+
+def test_affine_pairs_without_parallax_are_all_kept():
+    """Pairs related by one 2-D affine map leave the hyperplane undetermined: keep them all."""
+    rng = np.random.default_rng(9)
+    ref = rng.uniform(0, 500, (40, 2))
+    mov = ref @ np.array([[0.9, 0.1], [-0.1, 0.9]]).T + [5.0, -3.0]
+    model = estimate_affine_fundamental(ref, mov, THRESHOLD)
+    assert model.num_inliers == 40
+    assert np.max(model.residuals(ref, mov)) < 1e-6
+
+
+def test_unknown_kind_is_an_input_error():
+    x = np.zeros((20, 2))
+    with pytest.raises(InputError):
+        estimate_fundamental(x, x, "bogus")  # type: ignore[arg-type]
+
+
+def test_to_dict_is_json():
+    ref, mov = affine_scene(np.random.default_rng(8), 50)
+    d = estimate_affine_fundamental(ref, mov).to_dict()
+    assert json.loads(json.dumps(d))["kind"] == "affine"
+    assert len(d["matrix"]) == 3 and d["num_inliers"] == 50
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    rx=st.floats(-0.3, 0.3),
+    ry=st.floats(-0.3, 0.3),
+    rz=st.floats(-3.0, 3.0),
+    seed=st.integers(0, 1000),
+)
+def test_affine_msac_recovers_any_affine_pair(rx, ry, rz, seed):
+    ref, mov = affine_scene(np.random.default_rng(seed), 60, (rx, ry, rz))
+    model = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=seed)
+    assert model.num_inliers == 60
+    assert np.max(model.residuals(ref, mov)) < 1e-6

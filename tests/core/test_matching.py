@@ -1,0 +1,390 @@
+"""Tests of core.matching: matchers, client points, epipolar filter, spread, real pairs."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bench import realdata
+from core.epipolar import MIN_PAIRS
+from core.errors import InputError, NotEnoughPointsError
+from core.matching import (
+    ConjugatePoints,
+    detect_corners,
+    find_conjugate_points,
+    match_lk,
+    match_sift,
+    spread_points,
+)
+from core.options import RegistrationOptions
+
+MAX_INLIER_LOSS = 0.01  # stated rate for client points with 0.3 px noise at a 1.5 px threshold
+
+
+# --- synthetic pairs with known correspondences -------------------------------------------------
+
+
+def texture(shape=(360, 480), seed=0) -> np.ndarray:
+    """Grey uint8 texture with corners at several scales (blurred noise plus blocks)."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    img = np.zeros(shape, np.float64)
+    for sigma, weight in ((1.2, 1.0), (3.0, 1.0), (8.0, 0.7)):
+        layer = cv2.GaussianBlur(rng.normal(0, 1, shape), (0, 0), sigma)
+        img += weight * layer / layer.std()
+    for _ in range(80):
+        x, y = rng.integers(0, w - 20), rng.integers(0, h - 20)
+        img[y : y + rng.integers(5, 20), x : x + rng.integers(5, 20)] += rng.normal(0, 1.5)
+    img = np.clip(img, -4, 4)
+    img = (img - img.min()) / (img.max() - img.min())
+    return np.round(255 * img).astype(np.uint8)
+
+
+def homography(angle_deg=6.0, scale=0.95, tx=12.0, ty=-8.0, px=2e-5, centre=(240, 180)):
+    """Homography about ``centre`` (reference -> moving pixels)."""
+    a = np.deg2rad(angle_deg)
+    c = np.array([[1, 0, centre[0]], [0, 1, centre[1]], [0, 0, 1.0]])
+    S = np.array([[scale * np.cos(a), -scale * np.sin(a), tx],
+                  [scale * np.sin(a), scale * np.cos(a), ty], [px, 0, 1]])
+    return c @ S @ np.linalg.inv(c)
+
+
+def warp(image: np.ndarray, H: np.ndarray, size=None) -> np.ndarray:
+    """Moving image such that moving(H x) = reference(x)."""
+    h, w = image.shape[:2]
+    return cv2.warpPerspective(image, H, size or (w, h), flags=cv2.INTER_CUBIC,
+                               borderMode=cv2.BORDER_REFLECT)
+
+
+def transfer(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    q = np.c_[points, np.ones(len(points))] @ H.T
+    return q[:, :2] / q[:, 2:]
+
+
+def transfer_error(H, ref, mov) -> np.ndarray:
+    return np.linalg.norm(transfer(H, ref) - mov, axis=1)
+
+
+@pytest.fixture(scope="module")
+def planar_pair():
+    ref = texture()
+    H = homography()
+    return ref, warp(ref, H), H
+
+
+def opts(**kw) -> RegistrationOptions:
+    return RegistrationOptions(**kw)
+
+
+# --- automatic matching ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("matcher", ["lk", "sift", "auto"])
+def test_matchers_find_accurate_spread_pairs(planar_pair, matcher):
+    ref, mov, H = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(matcher=matcher, max_points=300, min_distance=8))
+    assert cp.source == ("sift" if matcher == "sift" else "lk")
+    assert 100 <= len(cp) <= 300
+    err = transfer_error(H, cp.reference, cp.moving)
+    assert np.median(err) < (0.3 if cp.source == "lk" else 0.6)
+    assert np.percentile(err, 95) < 1.5
+    # Counts tell every stage, and they only decrease.
+    stages = ["detected", "consistent", "epipolar", "kept"]
+    values = [cp.counts[s] for s in stages]
+    assert values == sorted(values, reverse=True) and values[-1] == len(cp)
+    assert cp.rejected["spread"] == cp.counts["epipolar"] - cp.counts["kept"]
+    # Minimum distance, residuals and model.
+    d = np.linalg.norm(cp.reference[:, None] - cp.reference[None], axis=2)
+    assert np.min(d + 1e9 * np.eye(len(cp))) >= 8.0
+    assert cp.epipolar is not None and cp.epipolar.kind == "projective"
+    assert cp.residuals.shape == (len(cp),) and np.all(cp.residuals <= 1.5)
+    assert cp.reference.dtype == cp.moving.dtype == np.float64
+
+
+def test_points_spread_over_the_image(planar_pair):
+    ref, mov, _ = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(matcher="lk", max_points=200))
+    counts, _, _ = np.histogram2d(cp.reference[:, 1], cp.reference[:, 0], bins=(3, 4),
+                                  range=((0, 360), (0, 480)))
+    # Every cell of a 3x4 grid gets points (the moving image covers all but some border).
+    assert np.all(counts >= 5), counts
+
+
+def test_colour_16_bit_and_different_sizes_give_the_same_geometry(planar_pair):
+    ref, _, H = planar_pair
+    ref_bgr = cv2.cvtColor(ref, cv2.COLOR_GRAY2BGR)
+    ref16 = ref_bgr.astype(np.uint16) * 257
+    mov = warp(ref, H, size=(420, 330))  # smaller moving image
+    mov_bgra = cv2.cvtColor(mov, cv2.COLOR_GRAY2BGRA)
+    cp = find_conjugate_points(ref16, mov_bgra, opts(matcher="lk", max_points=300))
+    assert len(cp) >= 100
+    assert np.all(cp.moving[:, 0] <= 419.5) and np.all(cp.moving[:, 1] <= 329.5)
+    assert np.median(transfer_error(H, cp.reference, cp.moving)) < 0.3
+
+
+def test_auto_falls_back_to_sift_on_wide_baseline():
+    ref = texture(seed=3)
+    H = homography(angle_deg=60.0, scale=0.6, tx=20, ty=10, px=0.0)
+    mov = warp(ref, H)
+    lk = match_lk(ref, mov, 900, 10.0)
+    assert lk.counts["consistent"] < 50  # plain tracking does not survive this rotation
+    cp = find_conjugate_points(ref, mov, opts(max_points=300))
+    assert len(cp) >= 50
+    # auto says what happened: SIFT matches, or tracking restarted from their homography.
+    assert cp.source in ("sift", "lk")
+    assert "lk_consistent" in cp.counts
+    if cp.source == "lk":
+        assert cp.counts["prior_sift_pairs"] > 0
+    assert np.median(transfer_error(H, cp.reference, cp.moving)) < 0.6
+
+
+def test_lighting_change_is_tolerated(planar_pair):
+    ref, mov, H = planar_pair
+    dark = np.round(255 * (mov / 255.0) ** 2.2 * 0.4).astype(np.uint8)  # darker, non-linear
+    cp = find_conjugate_points(ref, dark, opts(max_points=300))
+    assert len(cp) >= 100
+    assert np.median(transfer_error(H, cp.reference, cp.moving)) < 0.4
+
+
+def test_matching_is_deterministic(planar_pair):
+    ref, mov, _ = planar_pair
+    a = find_conjugate_points(ref, mov, opts(max_points=200, seed=5))
+    b = find_conjugate_points(ref, mov, opts(max_points=200, seed=5))
+    np.testing.assert_array_equal(a.reference, b.reference)
+    np.testing.assert_array_equal(a.moving, b.moving)
+    np.testing.assert_array_equal(a.epipolar.matrix, b.epipolar.matrix)
+
+
+def test_featureless_images_raise_not_enough_points():
+    flat = np.full((100, 120), 128, np.uint8)
+    with pytest.raises(NotEnoughPointsError) as info:
+        find_conjugate_points(flat, flat, opts())
+    assert info.value.found == 0 and info.value.needed >= 3
+    assert "at least" in str(info.value)
+
+
+def test_filter_off_keeps_nan_residuals(planar_pair):
+    ref, mov, _ = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(matcher="lk", epipolar_filter=False, max_points=100))
+    assert cp.epipolar is None and np.all(np.isnan(cp.residuals))
+    assert "epipolar" not in cp.rejected
+    json.dumps(cp.to_dict())
+
+
+def test_affine_model_option(planar_pair):
+    ref, mov, _ = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(matcher="lk", epipolar_model="affine"))
+    assert cp.epipolar.kind == "affine"
+
+
+def test_to_dict_is_json(planar_pair):
+    ref, mov, _ = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(max_points=50))
+    d = json.loads(json.dumps(cp.to_dict()))
+    assert d["source"] == cp.source and d["num_pairs"] == len(cp) == len(d["reference"])
+    assert d["epipolar"]["kind"] == "projective" and len(d["residuals_px"]) == len(cp)
+
+
+def test_detect_corners_sub_pixel_at_full_resolution():
+    """A corner detected on a pyramid level is refined at full resolution."""
+    img = np.zeros((2400, 2400), np.uint8)
+    img[1000:, 1000:] = 200  # one corner at (999.5, 999.5) between the pixels
+    img = cv2.GaussianBlur(img, (0, 0), 1.0)
+    pts = detect_corners(img, 10, 10.0)
+    assert len(pts) >= 1
+    assert np.min(np.linalg.norm(pts - 999.5, axis=1)) < 0.3
+
+
+def test_sift_reports_ratio_and_mutual_rejections(planar_pair):
+    ref, mov, _ = planar_pair
+    m = match_sift(ref, mov, 2000)
+    assert m.counts["matched"] + m.rejected["ratio test"] <= m.counts["detected"]
+    assert m.counts["consistent"] == m.counts["matched"] - m.rejected["mutual check"]
+
+
+# --- client points --------------------------------------------------------------------------------
+
+
+def client_pairs(n=200, outliers=0.3, seed=0):
+    """Noisy true pairs of a perspective 3-D scene plus outliers far from the epipolar lines."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[500.0, 0, 240], [0, 500, 180], [0, 0, 1]])
+    X = rng.uniform(-1, 1, (n, 3)) * [2.0, 1.5, 1.0] + [0, 0, 6]
+    a = 0.15
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    t = np.array([-0.8, 0.05, 0.1])
+    r = X @ K.T
+    m = (X @ R.T + t) @ K.T
+    ref, mov = r[:, :2] / r[:, 2:], m[:, :2] / m[:, 2:]
+    ref += rng.normal(0, 0.3, ref.shape)
+    mov += rng.normal(0, 0.3, mov.shape)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    out = np.zeros(n, bool)
+    out[rng.choice(n, int(outliers * n), replace=False)] = True
+    from core.epipolar import sampson_distance
+
+    for i in np.flatnonzero(out):
+        while True:
+            cand = mov[i] + rng.uniform(-40, 40, 2)
+            if sampson_distance(F, ref[i:i + 1], cand[None])[0] > 4.5:
+                mov[i] = cand
+                break
+    return ref, mov, out
+
+
+@pytest.mark.parametrize("model", ["affine", "projective"])
+def test_client_outliers_are_all_rejected(model):
+    ref, mov, out = client_pairs()
+    img = np.zeros((360, 480), np.uint8)
+    # The affine model cannot describe this close-range scene: only test it on the pairs near
+    # the image centre, where the perspective effect stays under the noise.
+    if model == "affine":
+        near = np.linalg.norm(ref - [240, 180], axis=1) < 90
+        ref, mov, out = ref[near], mov[near], out[near]
+    cp = find_conjugate_points(img, img, opts(epipolar_model=model), points=(ref, mov))
+    assert cp.source == "client"
+    kept = {tuple(p) for p in cp.reference}
+    kept_mask = np.array([tuple(p) in kept for p in ref])
+    assert not np.any(kept_mask & out), "an outlier survived"
+    assert np.mean(~kept_mask[~out]) <= MAX_INLIER_LOSS
+    assert cp.rejected["epipolar"] == np.count_nonzero(out)
+    assert cp.counts["given"] == len(ref) and cp.counts["kept"] == len(cp)
+    assert "spread" not in cp.rejected
+
+
+def test_client_points_are_validated():
+    ref, mov, out = client_pairs(outliers=0.0)
+    img = np.zeros((360, 480, 3), np.uint8)
+    ref = np.vstack([ref, [[np.nan, 5.0], [-10.0, 5.0], [5.0, 5.0]], ref[:2]])
+    mov = np.vstack([mov, [[5.0, 5.0], [5.0, 5.0], [5.0, 500.0]], mov[:2]])
+    cp = find_conjugate_points(img, img, opts(), points=(ref, mov))
+    assert cp.rejected["not finite"] == 1
+    assert cp.rejected["outside image"] == 2
+    assert cp.rejected["duplicate"] == 2
+    assert cp.counts["valid"] == 200
+
+
+def test_client_points_on_the_border_are_kept():
+    img = np.zeros((100, 100), np.uint8)
+    ref = np.array([[-0.5, -0.5], [99.5, 0.0], [0.0, 99.5], [50.0, 50.0]])
+    cp = find_conjugate_points(img, img, opts(epipolar_filter=False), points=(ref, ref + 0.2))
+    assert len(cp) == 4 and cp.epipolar is None
+
+
+def test_too_few_client_points_for_the_filter_says_so():
+    img = np.zeros((100, 100), np.uint8)
+    ref = np.array([[10.0, 10.0], [80.0, 15.0], [40.0, 70.0], [60.0, 60.0]])
+    with pytest.raises(NotEnoughPointsError) as info:
+        find_conjugate_points(img, img, opts(), points=(ref, ref + 1))
+    assert info.value.found == 4 and info.value.needed == MIN_PAIRS["projective"]
+    assert "epipolar_filter" in str(info.value)
+    cp = find_conjugate_points(img, img, opts(epipolar_filter=False), points=(ref, ref + 1))
+    assert len(cp) == 4
+    with pytest.raises(NotEnoughPointsError) as info:
+        find_conjugate_points(img, img, opts(epipolar_filter=False), points=(ref[:2], ref[:2]))
+    assert info.value.needed == 3
+
+
+def test_malformed_client_points_are_input_errors():
+    img = np.zeros((100, 100), np.uint8)
+    with pytest.raises(InputError):
+        find_conjugate_points(img, img, opts(), points=(np.zeros((5, 3)), np.zeros((5, 3))))
+    with pytest.raises(InputError):
+        find_conjugate_points(img, img, opts(), points=(np.zeros((5, 2)), np.zeros((4, 2))))
+    with pytest.raises(InputError):
+        find_conjugate_points(img.astype(np.float32), img, opts())
+
+
+# --- spread ---------------------------------------------------------------------------------------
+
+
+def test_spread_keeps_min_distance_and_strongest():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 100, (2000, 2))
+    score = rng.uniform(0, 1, 2000)
+    keep = spread_points(pts, score, 10_000, 5.0)
+    sub = pts[keep]
+    d = np.linalg.norm(sub[:, None] - sub[None], axis=2) + 1e9 * np.eye(len(sub))
+    assert d.min() >= 5.0
+    assert keep.tolist() == sorted(keep.tolist())
+    assert int(np.argmax(score)) in keep.tolist()
+
+
+def test_spread_thins_clusters_before_sparse_areas():
+    rng = np.random.default_rng(1)
+    cluster = rng.uniform(0, 50, (1500, 2))  # one dense, strong, textured patch
+    sparse = rng.uniform(0, 500, (100, 2))
+    pts = np.vstack([cluster, sparse])
+    score = np.r_[np.full(1500, 10.0) + rng.uniform(0, 1, 1500), rng.uniform(0, 1, 100)]
+    keep = spread_points(pts, score, 150, 0.0)
+    assert len(keep) == 150
+    from_sparse = np.count_nonzero(keep >= 1500)
+    assert from_sparse >= 90  # almost every sparse point survives although weaker
+
+
+def test_spread_drops_exact_duplicates():
+    pts = np.array([[1.0, 1.0], [1.0, 1.0], [2.0, 2.0]])
+    assert spread_points(pts, np.array([0.5, 0.9, 0.1]), 10, 0.0).tolist() == [1, 2]
+
+
+# --- real pairs -----------------------------------------------------------------------------------
+
+REAL = Path(os.environ.get(realdata.ENV_VAR) or Path(__file__).resolve().parents[2] / ".." /
+            "shared" / "data" / "real")
+
+
+def real_pair(name: str) -> realdata.RealPair:
+    if not (REAL / name).is_dir():
+        pytest.skip(f"real data folder {REAL / name} is absent (set {realdata.ENV_VAR} to its "
+                    "location to run this test)")
+    return realdata.load_pair(name, REAL)
+
+
+def downscale(pair: realdata.RealPair, factor: int) -> realdata.RealPair:
+    """Pair at 1/factor size (pyrDown) with its F scaled to match."""
+    ref, mov = pair.reference, pair.moving
+    for _ in range(int(np.log2(factor))):
+        ref, mov = cv2.pyrDown(ref), cv2.pyrDown(mov)
+    s = 1.0 / factor
+    # x_level = s (x + 0.5) - 0.5
+    T = np.array([[s, 0, 0.5 * s - 0.5], [0, s, 0.5 * s - 0.5], [0, 0, 1]])
+    Ti = np.linalg.inv(T)
+    F = Ti.T @ pair.F @ Ti
+    return realdata.RealPair(pair.name, pair.family, ref, mov, F=F / np.linalg.norm(F))
+
+
+@pytest.mark.parametrize("name", ["strecha_castle_p19", "strecha_herzjesu_p8", "strecha_entry_p10"])
+def test_strecha_pairs_agree_with_the_true_fundamental_matrix(name):
+    pair = downscale(real_pair(name), 2)  # 1536x1024 keeps the test fast
+    cp = find_conjugate_points(pair.reference, pair.moving, opts(max_points=600))
+    err = realdata.sampson_distance(pair.F, cp.reference, cp.moving)
+    assert cp.source == "lk"
+    assert len(cp) >= 300
+    assert np.median(err) < 0.35  # 0.5 px at full size is 0.25 px at half size (+ margin)
+    assert np.percentile(err, 99) < 3.0
+
+
+@pytest.mark.parametrize("name", ["oxford_leuven", "oxford_graf"])
+def test_oxford_pairs_agree_with_the_true_homography(name):
+    pair = real_pair(name)
+    cp = find_conjugate_points(pair.reference, pair.moving, opts(max_points=500))
+    err = realdata.transfer_error(pair.H, cp.reference, cp.moving)
+    assert len(cp) >= 200
+    assert np.median(err) < 1.0
+
+
+def test_real_data_helpers_match_the_shipped_fundamental_matrix():
+    pair = real_pair("strecha_castle_p19")
+    shipped = np.loadtxt(REAL / pair.name / "F_0002_to_0003_derived.txt", comments="#")
+    shipped /= np.linalg.norm(shipped)
+    assert min(np.abs(shipped - pair.F).max(), np.abs(shipped + pair.F).max()) < 1e-9
+
+
+def test_conjugate_points_type_is_exported():
+    assert ConjugatePoints.__dataclass_params__.frozen
