@@ -19,7 +19,6 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures import wait as wait_futures
 from concurrent.futures.process import BrokenProcessPool
 from functools import partial
 
@@ -126,18 +125,20 @@ class LocalProcessQueue(JobQueue):
         executor = self._executor
         if executor is None:
             return
-        with self._lock:
-            pending = list(self._inflight.values())
-        # shutdown() forgets the processes; keep them to kill those that do not stop.
         processes = list((getattr(executor, "_processes", None) or {}).values())
-        executor.shutdown(wait=False, cancel_futures=True)
-        _, not_done = wait_futures(pending, timeout=timeout)
-        if not_done:
-            log.warning("%d job(s) did not stop in %.0f s; killing the workers", len(not_done),
-                        timeout)
+        # Running jobs see the stop event at their next progress report and give their job
+        # back; queued calls are cancelled. Wait in a helper thread to bound the wait.
+        closer = threading.Thread(
+            target=executor.shutdown, kwargs={"wait": True, "cancel_futures": True}
+        )
+        closer.start()
+        closer.join(timeout)
+        if closer.is_alive():
+            log.warning("workers did not stop within %.0f s; killing them", timeout)
             for process in processes:
                 if process.is_alive():
                     process.kill()
+            closer.join(5.0)
         self._executor = None
 
     # --- dispatcher ----------------------------------------------------------------------------
