@@ -209,6 +209,8 @@ async def _request_validation_handler(request: Request, exc: Exception) -> JSONR
         loc = list(e.get("loc", ()))
         # FastAPI's loc starts with where the value came from: query, path, header, body.
         where = loc.pop(0) if loc and loc[0] in ("query", "path", "header", "body") else None
+        if where in ("query", "header"):
+            loc = [p for p in loc if not isinstance(p, int)]  # status.0 -> status
         name = ".".join(str(p) for p in loc)
         if where == "header":
             name = name.replace("_", "-").title()
