@@ -1,0 +1,421 @@
+"""Quality measures of a piecewise-linear registration against a known truth.
+
+Three families of measures, all pure functions of numpy arrays:
+
+* **Endpoint error** (pixels): where the mesh sends each reference pixel, against where the
+  pixel truly goes in the moving image (:func:`endpoint_error`, :func:`endpoint_error_map`).
+* **Mesh correctness** (the paper's, section 5): the share of internal edges (edges shared by two
+  triangles) that are *3-D compatible*, i.e. lie on one scene plane
+  (:func:`mesh_correctness`, :func:`edge_compatibility`).
+* **Global mutual information** (bits) of the reference and registered images inside a mask
+  (:func:`global_mi`), the paper's expression (8), for reporting.
+
+Conventions: pixel coordinates have x to the right, y down, (0, 0) at the centre of the top-left
+pixel; a pixel ``(x, y)`` is the array element ``[y, x]``. Vertices are ``(N, 2)`` arrays of
+``(x, y)``; triangles are ``(T, 3)`` vertex indices (any orientation). The piecewise map is
+evaluated with :func:`core.warp.piecewise_map`, so a pixel belongs to a triangle by the fill rule
+of :mod:`core.raster`, exactly as in registration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from core.similarity import mutual_information
+from core.warp import piecewise_map
+
+__all__ = [
+    "EdgeCompatibility",
+    "edge_compatibility",
+    "endpoint_error",
+    "endpoint_error_map",
+    "error_summary",
+    "global_mi",
+    "mesh_correctness",
+    "mesh_edges",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Endpoint error
+# --------------------------------------------------------------------------------------------
+
+
+def endpoint_error_map(
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    truth_x: np.ndarray,
+    truth_y: np.ndarray,
+    valid: np.ndarray | None = None,
+) -> np.ndarray:
+    """Per-pixel endpoint error of a piecewise-linear map.
+
+    Parameters
+    ----------
+    reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        Mesh vertices in the reference and moving images (pixels).
+    triangles : ndarray of int, shape (T, 3)
+        Vertex indices of the triangles (shared by both meshes).
+    truth_x, truth_y : ndarray of float, shape (H, W)
+        True position in the moving image of each reference pixel (pixels); NaN where unknown.
+    valid : ndarray of bool, shape (H, W), optional
+        Pixels to score (e.g. covisible ones). Default: every pixel with a finite truth.
+
+    Returns
+    -------
+    ndarray of float64, shape (H, W)
+        Euclidean distance (pixels) between the mapped position and the true one; NaN outside
+        the mesh, where the truth is unknown or where ``valid`` is False.
+    """
+    truth_x = np.asarray(truth_x, dtype=np.float64)
+    truth_y = np.asarray(truth_y, dtype=np.float64)
+    if truth_x.shape != truth_y.shape or truth_x.ndim != 2:
+        raise ValueError("truth_x and truth_y must be (H, W) arrays of the same shape")
+    map_x, map_y, label = piecewise_map(
+        np.asarray(reference_vertices, dtype=np.float64),
+        np.asarray(moving_vertices, dtype=np.float64),
+        np.asarray(triangles, dtype=np.int64).reshape(-1, 3),
+        truth_x.shape,
+    )
+    err = np.hypot(map_x - truth_x, map_y - truth_y)
+    keep = (label >= 0) & np.isfinite(err)
+    if valid is not None:
+        keep &= np.asarray(valid, dtype=bool)
+    err[~keep] = np.nan
+    return err
+
+
+def error_summary(errors: np.ndarray) -> dict[str, float]:
+    """Mean, median, 90th percentile, maximum and RMS of the finite entries of ``errors``.
+
+    Returns a dict with keys ``mean``, ``median``, ``p90``, ``max``, ``rms`` (same unit as the
+    input) and ``n`` (number of finite entries); statistics are NaN when ``n == 0``.
+    """
+    e = np.asarray(errors, dtype=np.float64)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        nan = float("nan")
+        return {"mean": nan, "median": nan, "p90": nan, "max": nan, "rms": nan, "n": 0}
+    return {
+        "mean": float(e.mean()),
+        "median": float(np.median(e)),
+        "p90": float(np.percentile(e, 90)),
+        "max": float(e.max()),
+        "rms": float(np.sqrt(np.mean(e * e))),
+        "n": int(e.size),
+    }
+
+
+def endpoint_error(
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    truth_x: np.ndarray,
+    truth_y: np.ndarray,
+    valid: np.ndarray | None = None,
+) -> dict[str, float]:
+    """Endpoint error statistics (pixels) of a piecewise-linear registration.
+
+    The map of each reference pixel inside the mesh (the affine map of its triangle, see
+    :func:`core.warp.piecewise_map`) is compared with its true position in the moving image,
+    over the pixels that are inside the mesh and ``valid``.
+
+    Parameters
+    ----------
+    reference_vertices, moving_vertices, triangles, truth_x, truth_y, valid
+        As in :func:`endpoint_error_map`. Pass ``scene.covisible`` (synthetic scenes) or the
+        pair's ``valid`` mask (Middlebury) as ``valid``.
+
+    Returns
+    -------
+    dict
+        ``mean``, ``median``, ``p90``, ``max``, ``rms`` in pixels; ``n`` the number of scored
+        pixels; ``coverage`` the share of valid pixels (finite truth and ``valid``) that lie
+        inside the mesh and were scored.
+    """
+    err = endpoint_error_map(
+        reference_vertices, moving_vertices, triangles, truth_x, truth_y, valid
+    )
+    stats: dict[str, float] = error_summary(err)
+    scorable = np.isfinite(np.asarray(truth_x)) & np.isfinite(np.asarray(truth_y))
+    if valid is not None:
+        scorable &= np.asarray(valid, dtype=bool)
+    total = int(scorable.sum())
+    stats["coverage"] = stats["n"] / total if total else float("nan")
+    return stats
+
+
+# --------------------------------------------------------------------------------------------
+# Mesh correctness
+# --------------------------------------------------------------------------------------------
+
+
+def mesh_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unique edges of a triangle mesh and how many triangles share each.
+
+    Parameters
+    ----------
+    triangles : ndarray of int, shape (T, 3)
+
+    Returns
+    -------
+    edges : ndarray of int64, shape (E, 2)
+        Vertex pairs ``(i, j)`` with ``i < j``, sorted lexicographically.
+    count : ndarray of int64, shape (E,)
+        Number of triangles having the edge: 2 for an internal edge, 1 for a boundary edge
+        (more than 2 means the input is not a manifold mesh).
+    """
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    pairs = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    pairs.sort(axis=1)
+    if len(pairs) == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64)
+    edges, count = np.unique(pairs, axis=0, return_counts=True)
+    return edges, count.astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeCompatibility:
+    """Per-edge result of :func:`edge_compatibility`.
+
+    Attributes
+    ----------
+    edges : ndarray of int64, shape (E, 2)
+        The edges tested (vertex indices).
+    compatible : ndarray of bool, shape (E,)
+        The edge lies on one scene plane (3-D compatible).
+    plane : ndarray of int64, shape (E,)
+        The plane covering most of the edge's samples (-1 if none).
+    agreement : ndarray of float64, shape (E,)
+        Share of the edge's samples covered by that plane, in [0, 1].
+    samples : ndarray of int64, shape (E,)
+        Number of samples taken along the edge.
+    """
+
+    edges: np.ndarray
+    compatible: np.ndarray
+    plane: np.ndarray
+    agreement: np.ndarray
+    samples: np.ndarray
+
+
+def _disk(radius: float) -> np.ndarray:
+    r = int(np.floor(radius))
+    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    return (xx * xx + yy * yy <= radius * radius + 1e-9).astype(np.uint8)
+
+
+def edge_compatibility(
+    reference_vertices: np.ndarray,
+    edges: np.ndarray,
+    plane_map: np.ndarray,
+    margin: float = 2.0,
+    radius: float = 1.5,
+    step: float = 0.5,
+    agreement: float = 0.98,
+) -> EdgeCompatibility:
+    """Decide for each edge whether it lies on one scene plane (is 3-D compatible).
+
+    The segment between the edge's reference vertices is sampled every ``step`` pixels,
+    leaving out ``margin`` pixels at each end (mesh vertices sit on creases and corners, and
+    carry localisation noise; the margin shrinks to a quarter of the length for short edges, so
+    every edge keeps at least its midpoint). A plane *covers* a sample when a pixel of that plane
+    lies within ``radius`` pixels of it (nearest-pixel lookup after dilating each plane's mask
+    by a disk of that radius), which lets an edge running along a crease or an occluding contour
+    belong to the plane on either side. The edge is compatible when one plane covers at least
+    ``agreement`` of its samples; background (plane id < 0) and samples outside the image are
+    covered by no plane.
+
+    Parameters
+    ----------
+    reference_vertices : ndarray, shape (N, 2)
+        Vertex positions in the reference image (pixels).
+    edges : ndarray of int, shape (E, 2)
+        Vertex index pairs.
+    plane_map : ndarray of int, shape (H, W)
+        Plane id of the surface seen at each reference pixel; < 0 for none (background,
+        unknown). For a synthetic scene, ``scene.face``.
+    margin : float
+        Pixels left out at each end of the segment.
+    radius : float
+        Tolerance (pixels) of the plane lookup.
+    step : float
+        Sampling step along the segment (pixels).
+    agreement : float
+        Minimum share of samples covered by one plane, in (0, 1].
+
+    Returns
+    -------
+    EdgeCompatibility
+    """
+    if not 0 < agreement <= 1:
+        raise ValueError("agreement must be in (0, 1]")
+    if step <= 0 or margin < 0 or radius < 0:
+        raise ValueError("step must be > 0, margin and radius >= 0")
+    verts = np.asarray(reference_vertices, dtype=np.float64).reshape(-1, 2)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    planes = np.asarray(plane_map)
+    height, width = planes.shape
+    n_edges = len(edges)
+    if n_edges == 0:
+        z = np.zeros(0)
+        return EdgeCompatibility(edges, z.astype(bool), z.astype(np.int64), z, z.astype(np.int64))
+
+    p, q = verts[edges[:, 0]], verts[edges[:, 1]]
+    length = np.hypot(*(q - p).T)
+    m = np.minimum(margin, 0.25 * length)
+    span = length - 2 * m
+    counts = np.maximum(np.ceil(span / step).astype(np.int64) + 1, 1)
+    edge_of = np.repeat(np.arange(n_edges), counts)
+    start = np.cumsum(counts) - counts
+    k = np.arange(counts.sum()) - np.repeat(start, counts)
+    denom = np.maximum(counts - 1, 1)
+    s = m[edge_of] + span[edge_of] * np.where(counts[edge_of] > 1, k / denom[edge_of], 0.5)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(length[edge_of] > 0, s / length[edge_of], 0.5)
+    xy = p[edge_of] + t[:, None] * (q - p)[edge_of]
+    col = np.rint(xy[:, 0]).astype(np.int64)
+    row = np.rint(xy[:, 1]).astype(np.int64)
+    inside = (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    col, row = np.clip(col, 0, width - 1), np.clip(row, 0, height - 1)
+
+    ids = np.unique(planes[planes >= 0])
+    kernel = _disk(radius)
+    covered = np.zeros((len(edge_of), max(len(ids), 1)), dtype=bool)
+    for c, pid in enumerate(ids):
+        mask = (planes == pid).astype(np.uint8)
+        if radius > 0:
+            mask = cv2.dilate(mask, kernel)
+        covered[:, c] = mask[row, col].astype(bool) & inside
+    per_edge = np.add.reduceat(covered.astype(np.int64), start, axis=0)  # (E, P)
+    best = per_edge.argmax(axis=1)
+    best_count = per_edge[np.arange(n_edges), best]
+    share = best_count / counts
+    plane = np.where(best_count > 0, ids[best] if len(ids) else -1, -1).astype(np.int64)
+    compatible = share >= agreement - 1e-12
+    return EdgeCompatibility(
+        edges=edges, compatible=compatible, plane=plane, agreement=share, samples=counts
+    )
+
+
+def mesh_correctness(
+    reference_vertices: np.ndarray,
+    triangles: np.ndarray,
+    plane_map: np.ndarray,
+    margin: float = 2.0,
+    radius: float = 1.5,
+    step: float = 0.5,
+    agreement: float = 0.98,
+) -> dict[str, float]:
+    """The paper's mesh correctness: share of internal edges that are 3-D compatible.
+
+    An internal edge is shared by two triangles; a boundary edge by one. Compatibility is
+    decided by :func:`edge_compatibility` (an edge is compatible when it lies on one scene
+    plane), whose tolerance parameters are passed through. Boundary edges are counted
+    separately, as the paper leaves them out.
+
+    Parameters
+    ----------
+    reference_vertices : ndarray, shape (N, 2)
+        Vertices in the reference image (pixels).
+    triangles : ndarray of int, shape (T, 3)
+    plane_map : ndarray of int, shape (H, W)
+        Plane id at each reference pixel, < 0 for none (``scene.face``).
+    margin, radius, step, agreement
+        See :func:`edge_compatibility`.
+
+    Returns
+    -------
+    dict
+        ``correctness`` (compatible internal / internal, NaN without internal edges),
+        ``internal_edges``, ``compatible_internal``, ``incompatible_internal``,
+        ``boundary_edges``, ``compatible_boundary``, ``boundary_correctness``.
+    """
+    edges, count = mesh_edges(triangles)
+    result = edge_compatibility(
+        reference_vertices, edges, plane_map, margin=margin, radius=radius, step=step,
+        agreement=agreement,
+    )
+    internal = count == 2
+    boundary = count == 1
+    n_int = int(internal.sum())
+    n_bnd = int(boundary.sum())
+    ok_int = int((result.compatible & internal).sum())
+    ok_bnd = int((result.compatible & boundary).sum())
+    return {
+        "correctness": ok_int / n_int if n_int else float("nan"),
+        "internal_edges": n_int,
+        "compatible_internal": ok_int,
+        "incompatible_internal": n_int - ok_int,
+        "boundary_edges": n_bnd,
+        "compatible_boundary": ok_bnd,
+        "boundary_correctness": ok_bnd / n_bnd if n_bnd else float("nan"),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Global mutual information
+# --------------------------------------------------------------------------------------------
+
+
+def _bin(image: np.ndarray, bins: int) -> np.ndarray:
+    """Bin ``floor(g * M / (G + 1))`` of each grey level (G = 255 for uint8 and float input)."""
+    a = np.asarray(image)
+    if a.dtype == np.uint8 or a.dtype == np.uint16:
+        levels = int(np.iinfo(a.dtype).max) + 1
+        return (a.astype(np.int64) * bins) // levels
+    v = np.nan_to_num(a.astype(np.float64), nan=0.0)
+    return np.clip(np.floor(v * bins / 256.0), 0, bins - 1).astype(np.int64)
+
+
+def global_mi(
+    reference_gray: np.ndarray,
+    registered_gray: np.ndarray,
+    mask: np.ndarray | None = None,
+    bins: int = 16,
+) -> float:
+    """Mutual information (bits) between the reference and the registered image.
+
+    ``MI = H(A) + H(B) - H(A, B)`` from the joint histogram of the pixels in ``mask``, with
+    ``bins`` grey-level bins per image (the paper's M = 16); the formula is
+    :func:`core.similarity.mutual_information`'s. A grey level ``g`` of a uint8 (uint16) image
+    falls in bin ``floor(g * M / 256)`` (``/ 65536``); float images are taken on the 0-255
+    scale. This is the paper's global registration consistency (its expression (8)), for
+    reporting; it is not normalised.
+
+    Parameters
+    ----------
+    reference_gray, registered_gray : ndarray, shape (H, W)
+        Grey images of the same shape (uint8, uint16 or float on 0-255).
+    mask : ndarray of bool, shape (H, W), optional
+        Pixels to use (e.g. inside the mesh and mapped inside the moving image). Default: all
+        pixels where the registered image is finite.
+    bins : int
+        Bins per image (>= 2).
+
+    Returns
+    -------
+    float
+        MI in bits; 0 for an empty mask.
+    """
+    a = np.asarray(reference_gray)
+    b = np.asarray(registered_gray)
+    if a.shape != b.shape or a.ndim != 2:
+        raise ValueError("reference_gray and registered_gray must be (H, W) of the same shape")
+    if bins < 2:
+        raise ValueError("bins must be >= 2")
+    keep = np.ones(a.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool).copy()
+    if np.issubdtype(b.dtype, np.floating):
+        keep &= np.isfinite(b)
+    if np.issubdtype(a.dtype, np.floating):
+        keep &= np.isfinite(a)
+    if not keep.any():
+        return 0.0
+    key = _bin(a[keep], bins) * bins + _bin(b[keep], bins)
+    hist = np.bincount(key, minlength=bins * bins)
+    mi, _ = mutual_information(hist, bins)
+    return float(mi)
