@@ -1,0 +1,43 @@
+"""The exported OpenAPI document is current and documents every model."""
+
+from __future__ import annotations
+
+import json
+
+from service.openapi import OPENAPI_PATH, openapi_document
+
+
+def test_openapi_file_is_up_to_date() -> None:
+    assert OPENAPI_PATH.is_file(), "openapi/openapi.json is missing: run python -m service.openapi"
+    exported = json.loads(OPENAPI_PATH.read_text())
+    assert exported == openapi_document(), (
+        "openapi/openapi.json is out of date: run python -m service.openapi"
+    )
+
+
+def test_every_model_has_a_description_and_examples() -> None:
+    schemas = openapi_document()["components"]["schemas"]
+    assert {"StatusInfo", "JobList", "ProblemDetails", "Link", "OptionInfo", "Options"} <= set(
+        schemas
+    )
+    for name, schema in schemas.items():
+        assert schema.get("description"), f"{name} has no description"
+        if schema.get("type") == "object":
+            assert schema.get("examples"), f"{name} has no examples"
+            for prop, spec in schema.get("properties", {}).items():
+                assert spec.get("description"), f"{name}.{prop} has no description"
+
+
+def test_errors_are_documented_as_problem_documents() -> None:
+    doc = openapi_document()
+    for path, operations in doc["paths"].items():
+        for method, operation in operations.items():
+            for code, response in operation["responses"].items():
+                if code[0] in "45":
+                    assert list(response["content"]) == ["application/problem+json"], (
+                        path, method, code)
+    submit = doc["paths"]["/v1/jobs"]["post"]
+    form = submit["requestBody"]["content"]["multipart/form-data"]["schema"]
+    assert form["required"] == ["reference", "moving"]
+    assert set(form["properties"]) == {"reference", "moving", "points", "options"}
+    assert "Location" in submit["responses"]["201"]["headers"]

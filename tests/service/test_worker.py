@@ -1,0 +1,304 @@
+"""The job store, the worker and the maintenance pass in-process, over a real SQLite file and a
+real data directory, with registration functions injected into the worker."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+from sqlalchemy import update
+
+from core.options import RegistrationOptions
+from service.maintenance import Janitor
+from service.metrics import Metrics
+from service.settings import Settings
+from service.storage import LocalStorage
+from service.store import IdempotencyConflict, JobRow, JobStatus, utcnow
+from service.worker import JobDismissed, ProgressReporter, WorkerContext, run_job
+from tests.service.helpers import Pair
+
+DEFAULTS = RegistrationOptions().model_dump(mode="json")
+
+
+class RecordingQueue:
+    """Stands in for the queue of the janitor: records what it is told."""
+
+    def __init__(self) -> None:
+        self.enqueued: list[str] = []
+
+    def enqueue(self, job_id: str) -> None:
+        self.enqueued.append(job_id)
+
+
+@pytest.fixture()
+def settings(tmp_path: Path) -> Settings:
+    return Settings(_env_file=None, data_dir=tmp_path / "data", lease_seconds=1.0,  # type: ignore[call-arg]
+                    progress_interval=0.05, max_attempts=2, job_time_limit=30)
+
+
+@pytest.fixture()
+def context(settings: Settings) -> WorkerContext:
+    ctx = WorkerContext.from_settings(settings)
+    ctx.storage.prepare()
+    ctx.store.create_schema()
+    return ctx
+
+
+def add_job(ctx: WorkerContext, pair: Pair, key: str | None = None) -> str:
+    staging = ctx.storage.new_staging()
+    (staging / "reference").write_bytes(pair.reference_png)
+    (staging / "moving").write_bytes(pair.moving_png)
+    (staging / "points").write_bytes(pair.points_json)
+    job_id = os.urandom(16).hex()
+    ctx.storage.commit_inputs(staging, job_id)
+    job, created = ctx.store.create(job_id, DEFAULTS, True, ctx.settings.max_attempts, key, "h")
+    assert created
+    return job.id
+
+
+# --- store -------------------------------------------------------------------------------------
+
+
+def test_only_one_worker_claims_a_job(context: WorkerContext, pair: Pair) -> None:
+    job_id = add_job(context, pair)
+    store = context.store
+    results: list[object] = []
+    barrier = threading.Barrier(4)
+
+    def claim(owner: str) -> None:
+        barrier.wait()
+        results.append(store.claim(job_id, owner, 5.0))
+
+    threads = [threading.Thread(target=claim, args=(f"w{i}",)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    winners = [r for r in results if r is not None]
+    assert len(winners) == 1
+    owner = winners[0].lease_owner  # type: ignore[attr-defined]
+    assert store.renew(job_id, owner, 5.0, stage="matching", progress=10)
+    assert not store.renew(job_id, "someone-else", 5.0)
+    assert not store.finish(job_id, "someone-else", JobStatus.successful, "x")
+    job = store.get(job_id)
+    assert job is not None and (job.stage, job.progress, job.attempts) == ("matching", 10, 1)
+
+
+def test_idempotency_key_with_another_request_is_a_conflict(
+    context: WorkerContext, pair: Pair
+) -> None:
+    job_id = add_job(context, pair, key="k1")
+    again, created = context.store.create("other", DEFAULTS, True, 2, "k1", "h")
+    assert not created and again.id == job_id
+    with pytest.raises(IdempotencyConflict):
+        context.store.create("third", DEFAULTS, True, 2, "k1", "different")
+
+
+def test_expired_leases_are_requeued_then_failed_after_the_last_attempt(
+    context: WorkerContext, pair: Pair
+) -> None:
+    store = context.store
+    queue = RecordingQueue()
+    janitor = Janitor(context.settings, store, context.storage, queue)  # type: ignore[arg-type]
+    job_id = add_job(context, pair)
+    assert store.claim(job_id, "dead-1", lease_seconds=0.01)
+    time.sleep(0.05)
+    assert janitor.recover() == ([job_id], [])
+    assert queue.enqueued == [job_id]
+    job = store.get(job_id)
+    assert job is not None and job.status == JobStatus.accepted and "attempt 1 of 2" in job.message
+
+    assert store.claim(job_id, "dead-2", lease_seconds=0.01)
+    time.sleep(0.05)
+    assert janitor.recover() == ([], [job_id])
+    job = store.get(job_id)
+    assert job is not None and job.status == JobStatus.failed
+    assert job.error is not None and job.error["type"].endswith("attempts-exhausted")
+    assert "2 attempts" in job.message
+
+    # A live lease is left alone.
+    other = add_job(context, pair)
+    assert store.claim(other, "alive", lease_seconds=60)
+    assert janitor.recover() == ([], [])
+
+
+def test_retention_deletes_expired_jobs_and_their_files(
+    context: WorkerContext, pair: Pair
+) -> None:
+    store, storage = context.store, context.storage
+    old, recent, running = (add_job(context, pair) for _ in range(3))
+    store.dismiss(old)
+    store.dismiss(recent)
+    assert store.claim(running, "w", 60)
+    long_ago = utcnow() - timedelta(seconds=context.settings.retention + 60)
+    with store.engine.begin() as conn:
+        conn.execute(update(JobRow).where(JobRow.id == old).values(finished=long_ago))
+    janitor = Janitor(context.settings, store, storage, RecordingQueue())  # type: ignore[arg-type]
+    assert janitor.apply_retention() == 1
+    assert store.get(old) is None and not (storage.jobs / old).exists()
+    assert store.get(recent) is not None and (storage.jobs / recent).exists()
+    assert store.get(running) is not None
+
+
+# --- progress reporter ---------------------------------------------------------------------------
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_progress_is_throttled_monotonic_and_mapped_to_stages(
+    context: WorkerContext, pair: Pair
+) -> None:
+    job_id = add_job(context, pair)
+    assert context.store.claim(job_id, "me", 5.0)
+    clock = FakeClock()
+    reporter = ProgressReporter(context, job_id, "me", clock=clock)
+    writes = 0
+    original = context.store.renew
+
+    def counting_renew(*args: object, **kwargs: object) -> bool:
+        nonlocal writes
+        writes += 1
+        return original(*args, **kwargs)  # type: ignore[arg-type]
+
+    context.store.renew = counting_renew  # type: ignore[method-assign]
+    for i in range(100):
+        reporter("optimizing", i / 100)
+        clock.now += 0.001
+    assert writes == 2  # the stage change, then one after progress_interval (50 ms)
+    reporter("optimizing", 0.2)  # progress never goes back
+    clock.now += 1
+    reporter("rendering", 0.5)
+    job = context.store.get(job_id)
+    assert job is not None and job.stage == "rendering" and 90 < job.progress < 99
+
+
+def test_dismissal_stops_the_reporter(
+    context: WorkerContext, pair: Pair
+) -> None:
+    job_id = add_job(context, pair)
+    assert context.store.claim(job_id, "me", 5.0)
+    clock = FakeClock()
+    reporter = ProgressReporter(context, job_id, "me", clock=clock)
+    reporter("matching", 0.0)
+    context.store.dismiss(job_id)
+    clock.now += 1
+    with pytest.raises(JobDismissed):
+        reporter("matching", 0.5)
+
+
+# --- run_job with injected registration functions ---------------------------------------
+
+
+def test_a_bug_in_the_registration_fails_the_job_with_a_problem(
+    context: WorkerContext, pair: Pair
+) -> None:
+    def broken(*args: object, **kwargs: object) -> object:
+        raise ZeroDivisionError("oops")
+
+    context.runner = broken
+    job_id = add_job(context, pair)
+    assert run_job(job_id, context) == "failed"
+    job = context.store.get(job_id)
+    assert job is not None and job.error is not None
+    assert job.error["type"] == "urn:pwlreg:problem:internal-error"
+    assert "ZeroDivisionError: oops" in job.error["detail"]
+    assert not list((context.storage.jobs / job_id).glob("work-*"))
+
+
+def test_time_limit_fails_the_job(context: WorkerContext, pair: Pair) -> None:
+    context.settings = context.settings.model_copy(update={"job_time_limit": 0.2})
+
+    def endless(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        while True:
+            progress("optimizing", 0.1)
+            time.sleep(0.01)
+
+    context.runner = endless
+    job_id = add_job(context, pair)
+    assert run_job(job_id, context) == "failed"
+    job = context.store.get(job_id)
+    assert job is not None and job.error is not None
+    assert job.error["type"].endswith("time-limit-exceeded") and "0.2 s" in job.message
+
+
+def test_dismissal_is_not_swallowed_by_a_broad_except(context: WorkerContext, pair: Pair) -> None:
+    job_id = add_job(context, pair)
+    calls = 0
+
+    def stubborn(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        nonlocal calls
+        while True:
+            calls += 1
+            if calls == 3:
+                context.store.dismiss(job_id)
+            try:
+                progress("optimizing", 0.5)
+            except Exception:  # noqa: BLE001 (what careless code does)
+                pass
+            time.sleep(0.06)
+            if calls > 100:
+                raise AssertionError("the dismissal did not stop the registration")
+
+    context.runner = stubborn
+    assert run_job(job_id, context) == "dismissed"
+    assert calls < 10
+    assert not (context.storage.jobs / job_id).exists()
+    assert run_job(job_id, context) == "skipped"  # a dismissed job is never claimed again
+
+
+def test_stop_event_gives_the_job_back(context: WorkerContext, pair: Pair) -> None:
+    stop = threading.Event()
+    context.stop_event = stop
+
+    def until_stopped(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        stop.set()
+        progress("matching", 0.1)
+        raise AssertionError("not stopped")
+
+    context.runner = until_stopped
+    job_id = add_job(context, pair)
+    assert run_job(job_id, context) == "accepted"
+    job = context.store.get(job_id)
+    assert job is not None and job.status == JobStatus.accepted and job.attempts == 0
+
+
+def test_metrics_histogram_is_cumulative() -> None:
+    metrics = Metrics()
+    for seconds in (0.05, 0.3, 0.3, 7.0, 5000.0):
+        metrics.observe_job("successful", seconds)
+    text = metrics.render({s: 0 for s in JobStatus}, queue_depth=3, workers=2)
+    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="0.1"} 1' in text
+    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="0.5"} 3' in text
+    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="10.0"} 4' in text
+    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="1800.0"} 4' in text
+    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="+Inf"} 5' in text
+    assert 'pwlreg_job_duration_seconds_count{status="successful"} 5' in text
+    assert "pwlreg_queue_depth 3" in text
+
+
+def test_storage_sweep_removes_leftovers_only(tmp_path: Path) -> None:
+    storage = LocalStorage(tmp_path)
+    storage.prepare()
+    stale = storage.new_staging()
+    orphan = storage.jobs / "orphan"
+    orphan.mkdir()
+    known = storage.jobs / "known"
+    known.mkdir()
+    old = time.time() - 7200
+    for path in (stale, orphan, known):
+        os.utime(path, (old, old))
+    fresh = storage.new_staging()
+    removed = storage.sweep(lambda ids: {"known"} & set(ids), older_than=3600)
+    assert removed == 2
+    assert not stale.exists() and not orphan.exists()
+    assert known.exists() and fresh.exists()
