@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -27,6 +28,9 @@ from service.store import JobStatus, JobStore
 from service.worker import init_process, ping, run_in_process
 
 log = logging.getLogger(__name__)
+
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""Environment variables that size the thread pools of numerical libraries."""
 
 
 class JobQueue(ABC):
@@ -144,6 +148,12 @@ class LocalProcessQueue(JobQueue):
     # --- dispatcher ----------------------------------------------------------------------------
 
     def _new_executor(self) -> ProcessPoolExecutor:
+        # The thread pools of numpy's BLAS and OpenMP are sized when the library loads, from
+        # the environment the worker process inherits: set it before spawning. (An operator's
+        # explicit setting wins.)
+        threads = str(self.settings.worker_threads)
+        for variable in THREAD_VARIABLES:
+            os.environ.setdefault(variable, threads)
         executor = ProcessPoolExecutor(
             max_workers=self.settings.workers,
             mp_context=self._context,

@@ -14,7 +14,11 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
 def _default_workers() -> int:
-    return max(1, os.cpu_count() or 1)
+    """CPU cores this process may use (the affinity mask of a container, if any)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # not on Linux
+        return max(1, os.cpu_count() or 1)
 
 
 class Settings(BaseSettings):
@@ -44,6 +48,13 @@ class Settings(BaseSettings):
         le=256,
         description="Number of worker processes running registrations in parallel "
         "(default: the number of CPU cores).",
+    )
+    worker_threads: int = Field(
+        1,
+        ge=1,
+        le=256,
+        description="Threads each worker process gives to its numerical libraries (OpenCV, "
+        "BLAS, OpenMP). Keep workers x worker_threads at most the number of cores.",
     )
     max_upload_bytes: int = Field(
         64 * 1024 * 1024,

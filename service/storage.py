@@ -79,10 +79,15 @@ class LocalStorage:
         return path
 
     def commit_inputs(self, staging: Path, job_id: str) -> None:
-        """Move a staging directory to the inputs of ``job_id`` (atomic rename)."""
+        """Move a staging directory to the inputs of ``job_id`` (atomic rename), synced to disk
+        so that the inputs of an accepted job survive a power cut."""
+        for path in staging.iterdir():
+            _fsync(path)
         job_dir = self.jobs / job_id
         job_dir.mkdir(parents=True, exist_ok=True)
         os.replace(staging, job_dir / "inputs")
+        _fsync(job_dir)
+        _fsync(self.jobs)
 
     @staticmethod
     def discard(path: Path) -> None:
@@ -149,6 +154,20 @@ class LocalStorage:
                 shutil.rmtree(path, ignore_errors=True)
                 removed += 1
         return removed
+
+
+def _fsync(path: Path) -> None:
+    """Flush a file or a directory entry to disk (directories: POSIX only)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # directories cannot be synced on some platforms
+    finally:
+        os.close(fd)
 
 
 def _mtime(path: Path) -> float:

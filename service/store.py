@@ -32,7 +32,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 from sqlalchemy.types import TypeDecorator
 
 
@@ -152,10 +152,12 @@ class IdempotencyConflict(Exception):
 
 def _sqlite_pragmas(dbapi_connection: Any, connection_record: Any) -> None:
     cursor = dbapi_connection.cursor()
-    # WAL lets readers and one writer work together across processes; FULL sync makes a
-    # committed job survive a power cut; the busy timeout makes writers wait instead of failing.
+    # WAL lets readers and one writer work together across processes; the busy timeout makes
+    # writers wait instead of failing. NORMAL sync: a commit survives the crash of any process
+    # but, after a power cut, the last updates (progress, a finished status) may be lost; a job
+    # that comes back running is then run again. The insert of a new job syncs fully (create).
     cursor.execute("PRAGMA journal_mode=WAL")
-    cursor.execute("PRAGMA synchronous=FULL")
+    cursor.execute("PRAGMA synchronous=NORMAL")
     cursor.execute("PRAGMA busy_timeout=30000")
     cursor.close()
 
@@ -250,8 +252,7 @@ class JobStore:
             updated=now,
         )
         try:
-            with self._sessions.begin() as session:
-                session.add(row)
+            self._insert_durably(row)
         except IntegrityError:
             # Two requests with the same key raced; the other one won.
             existing = (
@@ -261,6 +262,24 @@ class JobStore:
                 raise
             return self._replay(existing, request_hash), False
         return Job.from_row(row), True
+
+    def _insert_durably(self, row: JobRow) -> None:
+        """Insert ``row`` and sync the commit to disk (SQLite: ``synchronous=FULL`` for this
+        transaction only), so that an accepted job survives even a power cut."""
+        sqlite = self.engine.dialect.name == "sqlite"
+        with self.engine.connect() as connection:
+            if sqlite:
+                connection.exec_driver_sql("PRAGMA synchronous=FULL")
+                connection.commit()
+            try:
+                with Session(bind=connection, expire_on_commit=False) as session:
+                    session.add(row)
+                    session.commit()
+            finally:
+                if sqlite:
+                    connection.rollback()
+                    connection.exec_driver_sql("PRAGMA synchronous=NORMAL")
+                    connection.commit()
 
     @staticmethod
     def _replay(existing: Job, request_hash: str | None) -> Job:

@@ -20,13 +20,15 @@ import threading
 import time
 import traceback
 import uuid
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from pydantic import ValidationError
 
 from core.errors import InputError
+from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
 from service.settings import Settings
 from service.storage import RESULTS, LocalStorage
@@ -101,6 +103,8 @@ class WorkerContext:
         The registration function; None means "import ``settings.runner`` on first use".
     stop_event : threading.Event-like, optional
         Set by the service when it shuts down.
+    abort : callable
+        Ends the worker process when a registration is stuck past its time limit.
     """
 
     settings: Settings
@@ -108,6 +112,7 @@ class WorkerContext:
     storage: LocalStorage
     runner: Runner | None = None
     stop_event: Any = None
+    abort: Callable[[], None] = field(default=lambda: os._exit(70))
 
     @classmethod
     def from_settings(
@@ -128,8 +133,18 @@ class WorkerContext:
 
 
 class ProgressReporter:
-    """The progress callback of one attempt: records progress, renews the lease, and raises a
-    :class:`JobInterrupted` when the attempt must stop.
+    """The progress callback of one attempt, and the heartbeat that keeps its lease.
+
+    Calling the reporter (``reporter(stage, fraction)``, from the registration) only records the
+    progress in memory and raises a :class:`JobInterrupted` when the attempt must stop: the
+    service is shutting down, the time limit is over, or the heartbeat found the job dismissed
+    or taken over. The registration stops at its next progress report.
+
+    The heartbeat (:meth:`beat`, every ``progress_interval`` seconds from a thread started by
+    :meth:`running`) writes the progress, renews the lease and reads back whether the job is
+    still ours. It runs apart from the progress reports so that the lease measures whether the
+    worker process is alive, not how often a stage reports: a long stage that reports rarely
+    keeps its lease, a dead process loses it.
 
     Parameters
     ----------
@@ -152,46 +167,89 @@ class ProgressReporter:
         self.owner = owner
         self.clock = clock
         self.started = clock()
-        self.last_write = -float("inf")
         self.stage: str | None = None
         self.percent = 0.0
+        self.interruption: JobInterrupted | None = None
+        self._lock = threading.Lock()
+
+    # --- the progress callback (registration thread) ---------------------------------------
 
     def __call__(self, stage: str, fraction: float) -> None:
-        settings = self.context.settings
+        self.check()
+        if stage in STAGES:
+            start, end = STAGES[stage]
+            f = min(max(float(fraction), 0.0), 1.0) if fraction == fraction else 0.0
+            with self._lock:
+                self.stage = stage
+                self.percent = max(self.percent, start + f * (end - start))
+
+    def check(self) -> None:
+        """Raise the pending interruption, if any."""
+        if self.interruption is not None:
+            raise self.interruption
         stop = self.context.stop_event
         if stop is not None and stop.is_set():
             raise WorkerStopping("the service is shutting down")
-        now = self.clock()
-        if now - self.started > settings.job_time_limit:
-            raise TimeLimitExceeded(
-                f"the job ran longer than the time limit of {settings.job_time_limit:g} s"
-            )
-        stage_changed = False
-        if stage in STAGES:
-            stage_changed = stage != self.stage
-            self.stage = stage
-            start, end = STAGES[stage]
-            f = min(max(float(fraction), 0.0), 1.0) if fraction == fraction else 0.0
-            self.percent = max(self.percent, start + f * (end - start))
-        if stage_changed or now - self.last_write >= settings.progress_interval:
-            self.write(now)
+        limit = self.context.settings.job_time_limit
+        if self.clock() - self.started > limit:
+            raise TimeLimitExceeded(f"the job ran longer than the time limit of {limit:g} s")
 
-    def write(self, now: float | None = None) -> None:
-        """Record the progress and renew the lease now; raise if the job is no longer ours."""
-        self.last_write = self.clock() if now is None else now
+    # --- the heartbeat (heartbeat thread, and once more before publishing) --------------------
+
+    def beat(self) -> None:
+        """Write the progress and renew the lease; raise :class:`JobDismissed` or
+        :class:`LeaseLost` if the job is no longer ours."""
+        with self._lock:
+            stage, percent = self.stage, round(self.percent, 1)
         store = self.context.store
         if store.renew(
-            self.job_id,
-            self.owner,
-            self.context.settings.lease_seconds,
-            stage=self.stage,
-            progress=round(self.percent, 1),
+            self.job_id, self.owner, self.context.settings.lease_seconds, stage, percent
         ):
             return
         job = store.get(self.job_id)
         if job is None or job.status == JobStatus.dismissed:
             raise JobDismissed("the job was dismissed")
         raise LeaseLost("the job's lease expired and another attempt took it over")
+
+    @contextmanager
+    def running(self) -> Iterator[None]:
+        """Run the heartbeat in a thread while the block runs."""
+        done = threading.Event()
+        thread = threading.Thread(
+            target=self._heartbeat, args=(done,), name=f"heartbeat-{self.job_id}", daemon=True
+        )
+        thread.start()
+        try:
+            yield
+        finally:
+            done.set()
+            thread.join()
+
+    def _heartbeat(self, done: threading.Event) -> None:
+        settings = self.context.settings
+        # A registration stuck without progress reports past the time limit (plus one lease)
+        # cannot be stopped from inside: fail the job and end the worker process.
+        hard_limit = settings.job_time_limit + settings.lease_seconds
+        while not done.wait(settings.progress_interval):
+            try:
+                self.beat()
+            except JobInterrupted as exc:
+                self.interruption = exc
+                return
+            except Exception:  # noqa: BLE001 (a database hiccup: try again next beat)
+                log.exception("job %s: heartbeat failed", self.job_id)
+            if self.clock() - self.started > hard_limit:
+                detail = (
+                    f"the job ran longer than the time limit of {settings.job_time_limit:g} s "
+                    "and did not stop; its worker process was ended"
+                )
+                self.context.store.finish(
+                    self.job_id, self.owner, JobStatus.failed, detail,
+                    _problem("time-limit-exceeded", "Time limit exceeded", 500, detail),
+                )
+                log.error("job %s: %s", self.job_id, detail)
+                self.context.abort()
+                return
 
 
 def _problem(slug: str, title: str, status: int, detail: str, field: str | None = None) -> dict:
@@ -217,8 +275,6 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     is skipped. Errors about the input end the job as failed with a readable message; nothing
     raised by the registration escapes this function.
     """
-    from core.io import load_points, read_image, write_outputs
-
     store, storage, settings = context.store, context.storage, context.settings
     owner = _owner()
     job = store.claim(job_id, owner, settings.lease_seconds)
@@ -233,27 +289,28 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         return _settle_lost(job_id, context)
 
     try:
-        reference = read_image(
-            storage.input_path(job_id, "reference"), settings.max_pixels, field="reference"
-        )
-        moving = read_image(
-            storage.input_path(job_id, "moving"), settings.max_pixels, field="moving"
-        )
-        points = None
-        if job.has_points:
-            points = load_points(
-                storage.input_path(job_id, "points").read_bytes(), field="points"
+        with reporter.running():
+            reference = read_image(
+                storage.input_path(job_id, "reference"), settings.max_pixels, field="reference"
             )
-        options = RegistrationOptions.model_validate(job.options)
-        runner = context.get_runner()
-        result = runner(reference, moving, points=points, options=options, progress=reporter)
-        reporter.write()  # last check: dismissed while the last stage ran?
-        work = storage.work_dir(job_id, owner)
-        written = write_outputs(result, work)
+            moving = read_image(
+                storage.input_path(job_id, "moving"), settings.max_pixels, field="moving"
+            )
+            points = None
+            if job.has_points:
+                points = load_points(
+                    storage.input_path(job_id, "points").read_bytes(), field="points"
+                )
+            options = RegistrationOptions.model_validate(job.options)
+            runner = context.get_runner()
+            result = runner(reference, moving, points=points, options=options, progress=reporter)
+            reporter.check()
+            work = storage.work_dir(job_id, owner)
+            written = write_outputs(result, work)
         missing = [key for key in RESULTS if key not in written]
         if missing:
             raise RuntimeError(f"write_outputs did not write {', '.join(missing)}")
-        reporter.write()
+        reporter.beat()  # still ours (not dismissed) before the results become visible?
         storage.publish_results(job_id, work)
         summary = result.summary()
         if store.finish(job_id, owner, JobStatus.successful, summary):
@@ -321,6 +378,9 @@ def init_process(settings: Settings, stop_event: Any = None) -> None:
     """
     global _PROCESS_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import cv2
+
+    cv2.setNumThreads(settings.worker_threads)  # processes, not threads, share the cores
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:

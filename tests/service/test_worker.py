@@ -13,12 +13,19 @@ import pytest
 from sqlalchemy import update
 
 from core.options import RegistrationOptions
+from core.pipeline import register
 from service.maintenance import Janitor
 from service.metrics import Metrics
 from service.settings import Settings
 from service.storage import LocalStorage
 from service.store import IdempotencyConflict, JobRow, JobStatus, utcnow
-from service.worker import JobDismissed, ProgressReporter, WorkerContext, run_job
+from service.worker import (
+    JobDismissed,
+    ProgressReporter,
+    TimeLimitExceeded,
+    WorkerContext,
+    run_job,
+)
 from tests.service.helpers import Pair
 
 DEFAULTS = RegistrationOptions().model_dump(mode="json")
@@ -155,13 +162,12 @@ class FakeClock:
         return self.now
 
 
-def test_progress_is_throttled_monotonic_and_mapped_to_stages(
+def test_progress_reports_stay_in_memory_until_the_heartbeat(
     context: WorkerContext, pair: Pair
 ) -> None:
     job_id = add_job(context, pair)
     assert context.store.claim(job_id, "me", 5.0)
-    clock = FakeClock()
-    reporter = ProgressReporter(context, job_id, "me", clock=clock)
+    reporter = ProgressReporter(context, job_id, "me", clock=FakeClock())
     writes = 0
     original = context.store.renew
 
@@ -171,29 +177,45 @@ def test_progress_is_throttled_monotonic_and_mapped_to_stages(
         return original(*args, **kwargs)  # type: ignore[arg-type]
 
     context.store.renew = counting_renew  # type: ignore[method-assign]
-    for i in range(100):
-        reporter("optimizing", i / 100)
-        clock.now += 0.001
-    assert writes == 2  # the stage change, then one after progress_interval (50 ms)
+    for i in range(1000):
+        reporter("optimizing", i / 1000)
     reporter("optimizing", 0.2)  # progress never goes back
-    clock.now += 1
+    assert writes == 0  # the registration's reports cost no database access
+    reporter.beat()
+    job = context.store.get(job_id)
+    assert writes == 1
+    assert job is not None and job.stage == "optimizing" and 85 < job.progress <= 90
     reporter("rendering", 0.5)
+    reporter.beat()
     job = context.store.get(job_id)
     assert job is not None and job.stage == "rendering" and 90 < job.progress < 99
 
 
-def test_dismissal_stops_the_reporter(
+def test_dismissal_found_by_the_heartbeat_stops_the_next_report(
     context: WorkerContext, pair: Pair
 ) -> None:
     job_id = add_job(context, pair)
     assert context.store.claim(job_id, "me", 5.0)
+    reporter = ProgressReporter(context, job_id, "me")
+    with reporter.running():
+        reporter("matching", 0.0)
+        context.store.dismiss(job_id)
+        deadline = time.monotonic() + 5
+        with pytest.raises(JobDismissed):
+            while time.monotonic() < deadline:
+                reporter("matching", 0.5)
+                time.sleep(0.01)
+
+
+def test_time_limit_is_checked_at_every_report(context: WorkerContext, pair: Pair) -> None:
+    job_id = add_job(context, pair)
+    assert context.store.claim(job_id, "me", 5.0)
     clock = FakeClock()
     reporter = ProgressReporter(context, job_id, "me", clock=clock)
-    reporter("matching", 0.0)
-    context.store.dismiss(job_id)
-    clock.now += 1
-    with pytest.raises(JobDismissed):
-        reporter("matching", 0.5)
+    reporter("matching", 0.1)
+    clock.now += context.settings.job_time_limit + 1
+    with pytest.raises(TimeLimitExceeded):
+        reporter("matching", 0.2)
 
 
 # --- run_job with injected registration functions ---------------------------------------
@@ -302,3 +324,49 @@ def test_storage_sweep_removes_leftovers_only(tmp_path: Path) -> None:
     assert removed == 2
     assert not stale.exists() and not orphan.exists()
     assert known.exists() and fresh.exists()
+
+
+def test_a_long_stage_without_reports_keeps_its_lease(context: WorkerContext, pair: Pair) -> None:
+    lease = context.settings.lease_seconds
+
+    def quiet(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        time.sleep(2.5 * lease)  # no progress report for 2.5 leases
+        return register(reference, moving, points=points, options=options, progress=progress)
+
+    context.runner = quiet
+    job_id = add_job(context, pair)
+    janitor = Janitor(context.settings, context.store, context.storage, RecordingQueue())  # type: ignore[arg-type]
+    outcome: list[str] = []
+    thread = threading.Thread(target=lambda: outcome.append(run_job(job_id, context)))
+    thread.start()
+    requeued = []
+    while thread.is_alive():
+        requeued += janitor.recover()[0]
+        time.sleep(0.1)
+    thread.join()
+    assert requeued == [] and outcome == ["successful"]
+    job = context.store.get(job_id)
+    assert job is not None and job.attempts == 1
+
+
+def test_a_stuck_registration_is_failed_and_its_process_ended(
+    context: WorkerContext, pair: Pair
+) -> None:
+    context.settings = context.settings.model_copy(
+        update={"job_time_limit": 0.3, "lease_seconds": 0.4}
+    )
+    aborted = threading.Event()
+    context.abort = aborted.set
+
+    def stuck(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        aborted.wait(10)  # never reports; "ends" when the worker process would be ended
+        return None
+
+    context.runner = stuck
+    job_id = add_job(context, pair)
+    run_job(job_id, context)
+    assert aborted.is_set()
+    job = context.store.get(job_id)
+    assert job is not None and job.status == JobStatus.failed
+    assert job.error is not None and job.error["type"].endswith("time-limit-exceeded")
+    assert "did not stop" in job.message

@@ -1,0 +1,231 @@
+"""Speed of the service against the core entry point (prints figures; not a test).
+
+1. Latency: 20 sequential jobs on a 1024x768 pair with 500 client points, submit-to-successful
+   (upload, validation, queue, worker, registration, result files, polling every 10 ms), set
+   against ``core.pipeline.register`` called directly in this process on the same decoded pair.
+   The difference of the medians is the service overhead (target: under 100 ms at p50).
+2. Throughput: 40 jobs submitted at once to a service with 1 worker, then with 2 workers
+   (target: 2 workers at least 1.8x the jobs per second of 1 worker).
+
+Usage::
+
+    python -m bench.service_speed [--jobs 20] [--batch 40] [--workers 2]
+
+The services run as ``python -m service.cli serve`` subprocesses on 127.0.0.1 with their data
+directory in a temporary directory.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import datetime
+from pathlib import Path
+
+import cv2
+import httpx
+import numpy as np
+
+from core.io import load_points, read_image, write_outputs
+from core.options import RegistrationOptions
+from core.pipeline import register
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def make_pair(width: int = 1024, height: int = 768, n_points: int = 500, seed: int = 3) -> tuple[
+    bytes, bytes, bytes
+]:
+    """A textured reference, a moving image made by an affine plus a smooth sinusoidal warp
+    (so that the edge-swap optimizer has work to do), and ``n_points`` exact conjugate points.
+
+    Returns PNG bytes of both images and the points file (JSON, pixel coordinates).
+    """
+    rng = np.random.default_rng(seed)
+    texture = cv2.GaussianBlur(rng.random((height, width)).astype(np.float32), (0, 0), 3.0)
+    texture = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+
+    def source(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Reference position of the moving pixel (x, y).
+        return (0.98 * x + 0.02 * y + 6 + 4 * np.sin(y / 90.0),
+                -0.01 * x + 1.01 * y - 4 + 3 * np.sin(x / 120.0))
+
+    ys, xs = np.mgrid[0:height, 0:width].astype(np.float32)
+    map_x, map_y = source(xs, ys)
+    moving = cv2.remap(texture, map_x.astype(np.float32), map_y.astype(np.float32),
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    moving_pts = np.column_stack([rng.uniform(10, width - 10, n_points),
+                                  rng.uniform(10, height - 10, n_points)])
+    rx, ry = source(moving_pts[:, 0], moving_pts[:, 1])
+    points = {"reference": np.column_stack([rx, ry]).tolist(), "moving": moving_pts.tolist()}
+    return (cv2.imencode(".png", texture)[1].tobytes(), cv2.imencode(".png", moving)[1].tobytes(),
+            json.dumps(points).encode())
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q))
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def service(workers: int, data_dir: Path) -> Iterator[str]:
+    """A ``pwlreg serve`` subprocess with ``workers`` workers; yields its URL."""
+    port = _free_port()
+    env = {**os.environ, "PWLREG_DATA_DIR": str(data_dir), "PWLREG_WORKERS": str(workers),
+           "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
+    log = (data_dir.parent / f"server-{workers}.log").open("wb")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--log-level",
+         "warning"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            if process.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError(f"service did not start; see {log.name}")
+            try:
+                if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            time.sleep(0.1)
+        yield url
+    finally:
+        process.terminate()
+        process.wait(60)
+        log.close()
+
+
+def submit(client: httpx.Client, pair: tuple[bytes, bytes, bytes]) -> str:
+    reference, moving, points = pair
+    response = client.post("/v1/jobs", files={
+        "reference": ("reference.png", reference, "image/png"),
+        "moving": ("moving.png", moving, "image/png"),
+        "points": ("points.json", points, "application/json"),
+    })
+    response.raise_for_status()
+    return response.json()["id"]
+
+
+def run_one(client: httpx.Client, pair: tuple[bytes, bytes, bytes], poll: float = 0.01) -> tuple[
+    float, dict
+]:
+    """Submit one job and poll it until it is finished; returns (seconds, job document)."""
+    t0 = time.perf_counter()
+    job_id = submit(client, pair)
+    while True:
+        job = client.get(f"/v1/jobs/{job_id}").json()
+        if job["status"] in ("successful", "failed", "dismissed"):
+            elapsed = time.perf_counter() - t0
+            if job["status"] != "successful":
+                raise RuntimeError(f"job {job_id} {job['status']}: {job.get('message')}")
+            return elapsed, job
+        time.sleep(poll)
+
+
+def run_batch(url: str, pair: tuple[bytes, bytes, bytes], n: int) -> float:
+    """Submit ``n`` jobs at once, wait for all; returns the wall time in seconds."""
+    with httpx.Client(base_url=url, timeout=120) as client:
+        run_one(client, pair)  # warm-up: worker processes started, core imported
+        t0 = time.perf_counter()
+        ids = {submit(client, pair) for _ in range(n)}
+        while True:
+            page = client.get("/v1/jobs", params={"status": ["accepted", "running"],
+                                                  "limit": 1}).json()
+            if page["numberMatched"] == 0:
+                break
+            time.sleep(0.05)
+        elapsed = time.perf_counter() - t0
+        failed = client.get("/v1/jobs", params={"status": "failed", "limit": 100}).json()
+        if ids & {j["id"] for j in failed["jobs"]}:
+            raise RuntimeError("some jobs failed")
+        return elapsed
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--jobs", type=int, default=20, help="sequential jobs (latency)")
+    parser.add_argument("--batch", type=int, default=40, help="jobs at once (throughput)")
+    parser.add_argument("--workers", type=int, default=2, help="workers of the parallel run")
+    args = parser.parse_args(argv)
+
+    pair = make_pair()
+    print(f"pair: 1024x768, 500 points; PNGs {len(pair[0]) // 1024} + {len(pair[1]) // 1024} KiB")
+    reference = read_image(pair[0], field="reference")
+    moving = read_image(pair[1], field="moving")
+    points = load_points(pair[2])
+    options = RegistrationOptions()
+
+    with tempfile.TemporaryDirectory(prefix="pwlreg-bench-") as tmp:
+        tmp_dir = Path(tmp)
+        # Direct calls of the core entry point, in this process.
+        register(reference, moving, points=points, options=options)  # warm-up
+        direct, direct_io = [], []
+        for i in range(args.jobs):
+            t0 = time.perf_counter()
+            result = register(reference, moving, points=points, options=options)
+            direct.append(time.perf_counter() - t0)
+            write_outputs(result, tmp_dir / f"direct-{i}")
+            direct_io.append(time.perf_counter() - t0)
+        print(f"summary: {result.summary()}")
+
+        # The same pair through the service, one job at a time.
+        latencies, worker_times = [], []
+        (tmp_dir / "seq").mkdir()
+        with service(1, tmp_dir / "seq" / "data") as url, httpx.Client(base_url=url,
+                                                                        timeout=120) as client:
+            run_one(client, pair)  # warm-up
+            for _ in range(args.jobs):
+                elapsed, job = run_one(client, pair)
+                latencies.append(elapsed)
+                started = job["started"].replace("Z", "+00:00")
+                finished = job["finished"].replace("Z", "+00:00")
+                worker_times.append((datetime.fromisoformat(finished)
+                                     - datetime.fromisoformat(started)).total_seconds())
+
+        ms = 1000.0
+        print(f"\nlatency over {args.jobs} sequential jobs (ms)      p50      p95")
+        print(f"  core register() direct               {percentile(direct, 50) * ms:8.1f} "
+              f"{percentile(direct, 95) * ms:8.1f}")
+        print(f"  register() + write_outputs() direct  {percentile(direct_io, 50) * ms:8.1f} "
+              f"{percentile(direct_io, 95) * ms:8.1f}")
+        print(f"  service: worker attempt (row times)  {percentile(worker_times, 50) * ms:8.1f} "
+              f"{percentile(worker_times, 95) * ms:8.1f}")
+        print(f"  service: submit to successful        {percentile(latencies, 50) * ms:8.1f} "
+              f"{percentile(latencies, 95) * ms:8.1f}")
+        overhead = (statistics.median(latencies) - statistics.median(direct)) * ms
+        verdict = "meets" if overhead < 100 else "MISSES"
+        print(f"  service overhead at p50: {overhead:.1f} ms ({verdict} the 100 ms target)")
+
+        # Throughput, 1 worker against N workers.
+        rates = {}
+        for workers in (1, args.workers):
+            (tmp_dir / f"batch-{workers}").mkdir()
+            with service(workers, tmp_dir / f"batch-{workers}" / "data") as url:
+                seconds = run_batch(url, pair, args.batch)
+            rates[workers] = args.batch / seconds
+            print(f"\n{args.batch} jobs at once, {workers} worker(s): {seconds:.2f} s, "
+                  f"{rates[workers]:.2f} jobs/s")
+        ratio = rates[args.workers] / rates[1]
+        verdict = "meets" if ratio >= 1.8 else "MISSES"
+        print(f"throughput {args.workers} workers / 1 worker: {ratio:.2f}x ({verdict} the 1.8x "
+              f"target; {os.cpu_count()} CPU cores on this machine)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
