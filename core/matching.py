@@ -566,9 +566,12 @@ def _epipolar(
             f"{stage} (the {options.epipolar_model} epipolar filter cannot reject outliers "
             f"robustly from fewer pairs; set epipolar_filter to false to use them unfiltered)",
         )
-    model = estimate_fundamental(
-        ref, mov, options.epipolar_model, options.epipolar_threshold, options.seed
-    )
+    try:
+        model = estimate_fundamental(
+            ref, mov, options.epipolar_model, options.epipolar_threshold, options.seed
+        )
+    except InputError as exc:  # no model at all: none of the pairs is consistent
+        raise NotEnoughPointsError(0, needed, f"{stage} ({exc})") from exc
     residuals = model.residuals(ref, mov)
     return model, residuals <= model.threshold, residuals
 
@@ -672,6 +675,10 @@ def _automatic(
                         result = guided
             if _size(tracked) > _size(result):
                 result = tracked
+            elif isinstance(result, NotEnoughPointsError) and isinstance(
+                tracked, NotEnoughPointsError
+            ) and tracked.found > result.found:
+                result = tracked  # report the attempt that came closest
             elif not isinstance(tracked, NotEnoughPointsError) and result[0] is not tracked[0]:
                 for k in ("detected", "tracked", "consistent", "epipolar"):
                     result[0].counts[f"lk_{k}"] = tracked[0].counts.get(k, 0)

@@ -168,6 +168,14 @@ def test_featureless_images_raise_not_enough_points():
     assert "at least" in str(info.value)
 
 
+@pytest.mark.parametrize("shape", [(2, 2), (9, 7), (30, 30), (5, 400)])
+@pytest.mark.parametrize("matcher", ["lk", "sift", "auto"])
+def test_tiny_images_raise_not_enough_points(shape, matcher):
+    img = (np.random.default_rng(0).random(shape) * 255).astype(np.uint8)
+    with pytest.raises(NotEnoughPointsError):
+        find_conjugate_points(img, np.roll(img, 1, axis=1), opts(matcher=matcher))
+
+
 def test_filter_off_keeps_nan_residuals(planar_pair):
     ref, mov, _ = planar_pair
     cp = find_conjugate_points(ref, mov, opts(matcher="lk", epipolar_filter=False, max_points=100))
