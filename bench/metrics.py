@@ -189,7 +189,8 @@ class EdgeCompatibility:
     compatible : ndarray of bool, shape (E,)
         The edge lies on one scene plane (3-D compatible).
     plane : ndarray of int64, shape (E,)
-        The plane covering most of the edge's samples (-1 if none).
+        The plane covering most of the edge's samples (among the planes containing both
+        vertices, when vertex planes are given); -1 if none.
     agreement : ndarray of float64, shape (E,)
         Share of the edge's samples covered by that plane, in [0, 1].
     samples : ndarray of int64, shape (E,)
@@ -213,6 +214,7 @@ def edge_compatibility(
     reference_vertices: np.ndarray,
     edges: np.ndarray,
     plane_map: np.ndarray,
+    vertex_planes: np.ndarray | None = None,
     margin: float = 2.0,
     radius: float = 1.5,
     step: float = 0.5,
@@ -230,6 +232,13 @@ def edge_compatibility(
     ``agreement`` of its samples; background (plane id < 0) and samples outside the image are
     covered by no plane.
 
+    The image alone cannot tell where a vertex lies in depth: a vertex on an occluding contour
+    (a box's top corner seen against the ground) has the background plane next to it, and an
+    edge from it across the background would pass the sample test although its 3-D segment
+    runs through the air. ``vertex_planes`` closes that gap: when given, the covering plane
+    must also contain both end vertices in 3-D (for synthetic scenes, from
+    :meth:`bench.scenes.Scene.vertex_planes`).
+
     Parameters
     ----------
     reference_vertices : ndarray, shape (N, 2)
@@ -239,6 +248,9 @@ def edge_compatibility(
     plane_map : ndarray of int, shape (H, W)
         Plane id of the surface seen at each reference pixel; < 0 for none (background,
         unknown). For a synthetic scene, ``scene.face``.
+    vertex_planes : ndarray of bool, shape (N, P), optional
+        ``vertex_planes[i, p]``: vertex ``i`` lies on plane ``p`` in 3-D (P greater than every
+        plane id of ``plane_map``). Default: no constraint (image test only).
     margin : float
         Pixels left out at each end of the segment.
     radius : float
@@ -292,6 +304,12 @@ def edge_compatibility(
             mask = cv2.dilate(mask, kernel)
         covered[:, c] = mask[row, col].astype(bool) & inside
     per_edge = np.add.reduceat(covered.astype(np.int64), start, axis=0)  # (E, P)
+    if vertex_planes is not None and len(ids):
+        vp = np.asarray(vertex_planes, dtype=bool)
+        if vp.ndim != 2 or vp.shape[0] != len(verts) or vp.shape[1] <= ids.max():
+            raise ValueError("vertex_planes must be (N vertices, P > max plane id) booleans")
+        allowed = vp[edges[:, 0]][:, ids] & vp[edges[:, 1]][:, ids]
+        per_edge = np.where(allowed, per_edge, 0)
     best = per_edge.argmax(axis=1)
     best_count = per_edge[np.arange(n_edges), best]
     share = best_count / counts
@@ -306,6 +324,7 @@ def mesh_correctness(
     reference_vertices: np.ndarray,
     triangles: np.ndarray,
     plane_map: np.ndarray,
+    vertex_planes: np.ndarray | None = None,
     margin: float = 2.0,
     radius: float = 1.5,
     step: float = 0.5,
@@ -325,6 +344,10 @@ def mesh_correctness(
     triangles : ndarray of int, shape (T, 3)
     plane_map : ndarray of int, shape (H, W)
         Plane id at each reference pixel, < 0 for none (``scene.face``).
+    vertex_planes : ndarray of bool, shape (N, P), optional
+        Planes each vertex lies on in 3-D (``scene.vertex_planes(reference_vertices)``).
+        Strongly recommended for scenes with occlusions: without it an edge leaving an
+        occluding-contour vertex across the background counts as compatible.
     margin, radius, step, agreement
         See :func:`edge_compatibility`.
 
@@ -337,8 +360,8 @@ def mesh_correctness(
     """
     edges, count = mesh_edges(triangles)
     result = edge_compatibility(
-        reference_vertices, edges, plane_map, margin=margin, radius=radius, step=step,
-        agreement=agreement,
+        reference_vertices, edges, plane_map, vertex_planes=vertex_planes, margin=margin,
+        radius=radius, step=step, agreement=agreement,
     )
     internal = count == 2
     boundary = count == 1

@@ -248,6 +248,50 @@ class Scene:
         """(N,) bool: the conjugate point is a polyhedron corner (not a face-interior point)."""
         return self.points_plane < 0
 
+    @property
+    def point_planes(self) -> np.ndarray:
+        """(N, P) bool: conjugate point ``i`` lies on plane ``p`` (in 3-D, not just in the image).
+
+        An interior point lies on one plane, a corner on two or more (a box's top corner on its
+        top and two walls, a bottom corner also on the ground). Tolerance: 1e-6 scene radii.
+        """
+        tol = 1e-6 * float(self.info.get("scene_radius", 1.0))
+        normals = np.array([p.normal for p in self.planes])
+        offsets = np.array([p.offset for p in self.planes])
+        return np.abs(self.points_world @ normals.T - offsets) <= tol
+
+    def vertex_planes(self, reference_vertices: np.ndarray, tolerance: float = 0.05) -> np.ndarray:
+        """Planes each mesh vertex lies on, for :func:`bench.metrics.mesh_correctness`.
+
+        Mesh vertices are matched to the scene's conjugate points by reference position
+        (nearest of :attr:`points_reference` within ``tolerance`` pixels), so vertices that a
+        registration quantized, reordered or filtered still find their 3-D point.
+
+        Parameters
+        ----------
+        reference_vertices : ndarray, shape (M, 2)
+            Mesh vertices in the reference image (pixels).
+        tolerance : float
+            Matching distance in pixels (the core quantizes vertices to 1/256 px).
+
+        Returns
+        -------
+        ndarray of bool, shape (M, P)
+            Row ``i`` is :attr:`point_planes` of the matched point; all True (no constraint)
+            for a vertex that matches no scene point.
+        """
+        verts = np.asarray(reference_vertices, dtype=np.float64).reshape(-1, 2)
+        table = self.point_planes
+        out = np.ones((len(verts), len(self.planes)), dtype=bool)
+        if len(self.points_reference) == 0:
+            return out
+        d = np.hypot(verts[:, None, 0] - self.points_reference[None, :, 0],
+                     verts[:, None, 1] - self.points_reference[None, :, 1])
+        nearest = d.argmin(axis=1)
+        found = d[np.arange(len(verts)), nearest] <= tolerance
+        out[found] = table[nearest[found]]
+        return out
+
 
 # --------------------------------------------------------------------------------------------
 # Projection and ray casting

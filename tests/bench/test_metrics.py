@@ -150,10 +150,39 @@ def test_edge_compatibility_tolerances():
     assert edge_compatibility(*over, plane, agreement=0.9).compatible[0]
 
 
+def test_vertex_planes_catch_edges_leaving_an_occluding_contour():
+    plane = np.zeros((60, 80), dtype=np.int32)  # ground
+    plane[10:30, 10:30] = 1  # a box top, seen against the ground
+    verts = np.array([[29.5, 29.5], [60.0, 50.0], [12.0, 12.0]])  # top corner, ground, top
+    edges = np.array([[0, 1], [0, 2]])
+    on = np.array([[False, True], [True, False], [False, True]])  # the corner is not on the ground
+    assert edge_compatibility(verts, edges, plane).compatible.tolist() == [True, True]
+    r = edge_compatibility(verts, edges, plane, vertex_planes=on)
+    assert r.compatible.tolist() == [False, True]
+    assert r.plane.tolist() == [-1, 1]
+    with pytest.raises(ValueError, match="vertex_planes"):
+        edge_compatibility(verts, edges, plane, vertex_planes=on[:, :1])
+
+
+def test_scene_vertex_planes():
+    s = make_scene("box", 5, size=(120, 90))
+    table = s.point_planes
+    assert table.shape == (len(s.points_world), len(s.planes))
+    inner = ~s.is_corner
+    assert np.array_equal(table[inner], np.eye(len(s.planes), dtype=bool)[s.points_plane[inner]])
+    assert np.all(table[s.is_corner].sum(axis=1) >= 2)  # box corners: two or three planes
+    # Vertices found by position, whatever their order, quantization or extra vertices.
+    order = np.random.default_rng(0).permutation(len(s.points_reference))
+    verts = np.vstack([np.rint(s.points_reference[order] * 256) / 256, [[-50.0, -50.0]]])
+    vp = s.vertex_planes(verts)
+    assert np.array_equal(vp[:-1], table[order])
+    assert vp[-1].all()
+
+
 def test_mesh_correctness_on_scenes_is_one_for_a_plane():
     s = make_scene("plane", 3, size=(120, 90))
     tri = Delaunay(s.points_reference).simplices
-    c = mesh_correctness(s.points_reference, tri, s.face)
+    c = mesh_correctness(s.points_reference, tri, s.face, s.vertex_planes(s.points_reference))
     assert c["correctness"] == 1.0 and c["internal_edges"] > 10
 
 

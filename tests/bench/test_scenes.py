@@ -147,7 +147,7 @@ def test_single_plane_any_triangulation_is_exact_under_affine_cameras(scenes):
         e = endpoint_error(ref, mov, tri, s.truth_x, s.truth_y, s.covisible)
         assert e["n"] > 1000
         assert e["max"] < 1e-6
-        assert mesh_correctness(ref, tri, s.face)["correctness"] == 1.0
+        assert mesh_correctness(ref, tri, s.face, s.vertex_planes(ref))["correctness"] == 1.0
 
 
 def test_single_plane_perspective_error_is_small():
@@ -163,7 +163,7 @@ def test_polyhedral_delaunay_meshes_cross_creases(scenes):
     for family in POLYHEDRAL:
         s = scenes(family)
         tri = Delaunay(s.points_reference).simplices
-        c = mesh_correctness(s.points_reference, tri, s.face)
+        c = mesh_correctness(s.points_reference, tri, s.face, s.vertex_planes(s.points_reference))
         assert c["incompatible_internal"] >= 1, family
         assert c["correctness"] < 1.0
     # A scene with parallax: errors far beyond the point noise.
