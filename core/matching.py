@@ -15,8 +15,12 @@ Two matchers find pairs when the client sends none.
 
 ``"auto"`` runs ``"lk"`` and falls back to ``"sift"`` when fewer than
 :data:`AUTO_MIN_CONSISTENT` tracked pairs pass the epipolar filter (or fewer than half of
-the forward-backward consistent tracks do, the sign of a wrong global prior); it keeps whichever
-result has more consistent pairs.
+the forward-backward consistent tracks do, the sign of a wrong global prior). It then also
+retries the tracking from the homography of the SIFT matches (usually denser and more accurate
+than SIFT itself, since LK works at full resolution). Of the tracked, SIFT and SIFT-guided
+tracked pairs it keeps the largest epipolar-consistent set; ``source`` names the matcher of the
+kept pairs, and the counts of a tracking attempt that lost carry an ``lk_`` prefix
+(``prior_sift_pairs`` marks tracking started from SIFT).
 
 Every pair list then goes through the robust epipolar filter (:mod:`core.epipolar`) and, for
 automatic matches only, a spatial suppression that keeps the strongest pairs with a minimum
@@ -629,15 +633,21 @@ def _try_filter(matches: Matches, options: RegistrationOptions) -> Filtered | No
         return exc
 
 
-def _is_enough(result: Filtered | NotEnoughPointsError, options: RegistrationOptions) -> bool:
-    """Whether tracked pairs are numerous and coherent enough for ``auto`` to stop."""
+def _is_coherent(result: Filtered | NotEnoughPointsError) -> bool:
+    """Whether at least :data:`AUTO_MIN_INLIER_SHARE` of the matcher's consistent pairs are
+    epipolar inliers (a wrong global prior gives forward-backward consistent but incoherent
+    tracks)."""
     if isinstance(result, NotEnoughPointsError):
         return False
     matches = result[0]
     n = len(matches.reference)
-    consistent = matches.counts.get("consistent", n)
+    return n >= AUTO_MIN_INLIER_SHARE * matches.counts.get("consistent", n)
+
+
+def _is_enough(result: Filtered | NotEnoughPointsError, options: RegistrationOptions) -> bool:
+    """Whether tracked pairs are numerous and coherent enough for ``auto`` to stop."""
     target = min(AUTO_MIN_CONSISTENT, options.max_points)
-    return n >= target and n >= AUTO_MIN_INLIER_SHARE * consistent
+    return _is_coherent(result) and _size(result) >= target
 
 
 def _size(result: Filtered | NotEnoughPointsError) -> int:
@@ -660,30 +670,37 @@ def _automatic(
     elif options.matcher == "sift":
         result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options)
     else:
-        result = _try_filter(lk(), options)
-        if not _is_enough(result, options):
-            tracked = result
-            result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options)
-            if not isinstance(result, NotEnoughPointsError):
-                # SIFT found the geometry; tracking started from it is usually denser and more
-                # accurate (full-resolution LK), so prefer it when it is coherent and larger.
-                sift_matches = result[0]
-                H = _homography_from_matches(sift_matches, seed)
+        tracked = _try_filter(lk(), options)
+        result = tracked
+        if not _is_enough(tracked, options):
+            attempts = [tracked, _try_filter(match_sift(ref_gray, mov_gray, candidates), options)]
+            sift = attempts[1]
+            if not isinstance(sift, NotEnoughPointsError):
+                # Tracking restarted from the SIFT geometry is usually denser and more accurate
+                # than SIFT itself (LK at full resolution).
+                H = _homography_from_matches(sift[0], seed)
                 if H is not None:
                     guided = _try_filter(lk(prior=H), options)
-                    if _is_enough(guided, options) and _size(guided) > _size(result):
-                        gm = guided[0]  # type: ignore[index]
-                        gm.counts["prior_sift_pairs"] = len(sift_matches.reference)
-                        result = guided
-            if _size(tracked) > _size(result):
-                result = tracked
-            elif isinstance(result, NotEnoughPointsError) and isinstance(
-                tracked, NotEnoughPointsError
-            ) and tracked.found > result.found:
-                result = tracked  # report the attempt that came closest
-            elif not isinstance(tracked, NotEnoughPointsError) and result[0] is not tracked[0]:
+                    if not isinstance(guided, NotEnoughPointsError):
+                        guided[0].counts["prior_sift_pairs"] = len(sift[0].reference)
+                    attempts.append(guided)
+            found = [a for a in attempts if not isinstance(a, NotEnoughPointsError)]
+            if found:
+                # Coherent sets first, then the largest; ties go to the earlier attempt.
+                result = max(found, key=lambda a: (_is_coherent(a), _size(a)))
+            else:
+                result = max(attempts, key=lambda e: e.found)  # the attempt that came closest
+            if (
+                not isinstance(result, NotEnoughPointsError)
+                and not isinstance(tracked, NotEnoughPointsError)
+                and result[0] is not tracked[0]
+            ):
                 for k in ("detected", "tracked", "consistent", "epipolar"):
                     result[0].counts[f"lk_{k}"] = tracked[0].counts.get(k, 0)
+            elif not isinstance(result, NotEnoughPointsError) and isinstance(
+                tracked, NotEnoughPointsError
+            ):
+                result[0].counts["lk_consistent"] = tracked.found
     if isinstance(result, NotEnoughPointsError):
         raise result
     matches, model, residuals = result
