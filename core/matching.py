@@ -18,7 +18,8 @@ Two matchers find pairs when the client sends none.
 the forward-backward consistent tracks do, the sign of a wrong global prior). It then also
 retries the tracking from the homography of the SIFT matches (usually denser and more accurate
 than SIFT itself, since LK works at full resolution). Of the tracked, SIFT and SIFT-guided
-tracked pairs it keeps the largest epipolar-consistent set; ``source`` names the matcher of the
+tracked pairs it keeps the largest epipolar-consistent set, preferring those that pass both
+criteria; ``source`` names the matcher of the
 kept pairs, and the counts of a tracking attempt that lost carry an ``lk_`` prefix
 (``prior_sift_pairs`` marks tracking started from SIFT).
 
@@ -686,8 +687,9 @@ def _automatic(
                     attempts.append(guided)
             found = [a for a in attempts if not isinstance(a, NotEnoughPointsError)]
             if found:
-                # Coherent sets first, then the largest; ties go to the earlier attempt.
-                result = max(found, key=lambda a: (_is_coherent(a), _size(a)))
+                # Sets that are large and coherent first, then the largest; ties go to the
+                # earlier attempt.
+                result = max(found, key=lambda a: (_is_enough(a, options), _size(a)))
             else:
                 result = max(attempts, key=lambda e: e.found)  # the attempt that came closest
             if (
