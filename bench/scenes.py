@@ -60,7 +60,6 @@ __all__ = [
     "backproject",
     "make_scene",
     "project",
-    "trace",
 ]
 
 FAMILIES: tuple[str, ...] = ("plane", "box", "prism", "gable", "lshape", "open_book", "city")
@@ -214,6 +213,16 @@ class Scene:
         The 3-D points.
     points_plane : ndarray of int32, shape (N,)
         Plane of each interior point; -1 for polyhedron corners (on two or more planes).
+    info : dict
+        Generation parameters (``size``, ``noise``, ``blur``, ``color``, ``point_noise``,
+        ``baseline_deg``, ``distance_radii``), the ``scene_radius`` (world units) and the
+        ``covisible_fraction`` of the reference pixels that see the scene.
+
+    Notes
+    -----
+    Mesh correctness needs to know which planes a vertex lies on in 3-D, which the image
+    cannot tell at occluding contours: use :meth:`vertex_planes` with
+    :func:`bench.metrics.mesh_correctness`.
     """
 
     family: str
@@ -467,7 +476,7 @@ def _inside(outline: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inside
 
 
-def trace(
+def _trace(
     camera: Camera, geometry: _Geometry, x: np.ndarray, y: np.ndarray, near: float = 1e-6
 ) -> tuple[np.ndarray, np.ndarray]:
     """Cast rays through image points and find the first polygon each one hits.
@@ -961,7 +970,7 @@ def _render(
     """Render an (H, W, 3) float BGR image with ``ss x ss`` supersampling."""
     width, height = size
     gx, gy = _pixel_grid(size, ss)
-    poly, depth = trace(camera, geometry, gx, gy)
+    poly, depth = _trace(camera, geometry, gx, gy)
     rgb = np.empty((len(gx), 3))
     rgb[:] = sky
     # A gentle vertical gradient on the sky, in image space.
@@ -1015,7 +1024,7 @@ def _sample_points(
 
     def visible(cam: Camera, X: np.ndarray) -> np.ndarray:
         xy, z = project(cam, X)
-        _, zhit = trace(cam, geometry, xy[:, 0], xy[:, 1])
+        _, zhit = _trace(cam, geometry, xy[:, 0], xy[:, 1])
         tol = 1e-6 * cam.reference_depth
         return (z > 0) & in_image(xy) & (zhit >= z - tol)
 
@@ -1052,7 +1061,7 @@ def _sample_points(
             chosen.append(xy[None])
         if chosen:
             xy = np.vstack(chosen)
-            p, z = trace(ref, geometry, xy[:, 0], xy[:, 1])
+            p, z = _trace(ref, geometry, xy[:, 0], xy[:, 1])
             o, d = _rays(ref, xy[:, 0], xy[:, 1])
             X = o + z[:, None] * d
             good = (p >= 0) & visible(mov, np.where((p >= 0)[:, None], X, 0.0))
@@ -1106,7 +1115,8 @@ def make_scene(
     camera : {"affine", "perspective"}
         Projection model of both views. ``"affine"`` is the weak-perspective approximation the
         paper assumes (an affine map per scene plane, so a triangle with correct vertices on one
-        plane registers exactly); ``"perspective"`` is a pinhole at 3 scene radii.
+        plane registers exactly); ``"perspective"`` is a pinhole at ``distance`` scene radii
+        (within one plane the truth is then a homography, not an affine map).
     radiometric : {"none", "lighting", "monotone", "nonmonotone"}
         Radiometric change applied to the moving view (see the module docstring).
     noise : float
@@ -1178,7 +1188,7 @@ def make_scene(
     for _attempt in range(20):
         cams = _cameras(cam_rng, family, camera, target, radius, size, baseline, distance)
         ref, mov = cams
-        poly_ref, z_ref = trace(ref, geometry, gx, gy)
+        poly_ref, z_ref = _trace(ref, geometry, gx, gy)
         seen = poly_ref >= 0
         o, d = _rays(ref, gx, gy)
         X = o + np.where(seen, z_ref, 0.0)[:, None] * d
@@ -1187,13 +1197,13 @@ def make_scene(
             seen & (xy2[:, 0] >= 0) & (xy2[:, 0] <= width - 1)
             & (xy2[:, 1] >= 0) & (xy2[:, 1] <= height - 1) & (z2 > 0)
         )
-        _, zhit = trace(mov, geometry, np.where(inside, xy2[:, 0], -10.0),
+        _, zhit = _trace(mov, geometry, np.where(inside, xy2[:, 0], -10.0),
                         np.where(inside, xy2[:, 1], -10.0))
         covis = inside & (zhit >= z2 - 1e-6 * mov.reference_depth)
         # Well posed: the scene fills most of the reference view and 75 % of it is covisible.
         if seen.mean() > 0.5 and covis.sum() > 0.75 * seen.sum():
             break
-    poly_mov, _ = trace(mov, geometry, gx, gy)
+    poly_mov, _ = _trace(mov, geometry, gx, gy)
     plane_ids = np.array([p.plane for p in polygons], dtype=np.int32)
     face = np.where(seen, plane_ids[poly_ref], -1).astype(np.int32).reshape(height, width)
     face_moving = np.where(poly_mov >= 0, plane_ids[poly_mov], -1).astype(np.int32)
