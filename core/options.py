@@ -73,14 +73,16 @@ class RegistrationOptions(BaseModel):
         "projective",
         description="Model of the robust epipolar filter: the affine fundamental matrix of the "
         "paper (MSAC, 4-pair samples) or the projective fundamental matrix (OpenCV USAC). "
-        "Default 'projective', measured on the real pairs (bench.matching): on the three "
-        "close-range Strecha pairs the affine model keeps only 37-40% of the tracked pairs that "
-        "the projective one keeps (kept 369/202/504 vs 998/659/1000) at the same accuracy "
-        "(median Sampson distance to the true F 0.13-0.23 px for both), because perspective "
-        "makes true matches miss the affine hyperplane by more than the threshold; on the "
-        "near-affine pairs (Oxford leuven, Middlebury) both keep the same pairs. Choose "
-        "'affine' for distant, narrow-field views (the paper's model), or fewer than 10 pairs "
-        "(it needs 6, the projective model 10).",
+        "Default 'projective', measured on the real pairs (python -m bench.matching): on the "
+        "same Lucas-Kanade tracks of the three close-range Strecha pairs, the affine model "
+        "accepts 31-37% of the pairs the projective one accepts (398/202/534 vs 1065/660/1447 "
+        "epipolar inliers; 348/192/485 vs 955/621/1000 kept) with no gain in accuracy (median "
+        "Sampson distance to the true F 0.14-0.23 px for both; 3.1% of the affine inliers on "
+        "herzjesu are over 3 px, none of the projective ones), because perspective moves true "
+        "matches off the affine hyperplane by more than the threshold; on the near-affine pairs "
+        "(Oxford leuven, Middlebury) both keep the same pairs. Choose 'affine' for distant, "
+        "narrow-field views (the paper's model) or for 6 to 9 client pairs (it needs 6, the "
+        "projective model 10).",
     )
     epipolar_filter: bool = Field(
         True,
