@@ -41,3 +41,19 @@ def test_errors_are_documented_as_problem_documents() -> None:
     assert form["required"] == ["reference", "moving"]
     assert set(form["properties"]) == {"reference", "moving", "points", "options"}
     assert "Location" in submit["responses"]["201"]["headers"]
+
+
+def test_readme_documents_every_option_and_setting() -> None:
+    from core.options import RegistrationOptions
+    from service.settings import Settings
+
+    readme = (OPENAPI_PATH.parents[1] / "README.md").read_text()
+    rows = {line.split("|")[1].strip().strip("`"): line.split("|")[3].strip().strip("`")
+            for line in readme.splitlines() if line.startswith("| `")}
+    for name, field in RegistrationOptions.model_fields.items():
+        assert name in rows, f"README: no row for the option {name}"
+        assert rows[name].lower() == str(field.default).lower(), (
+            f"README: default of {name} is {field.default}, not {rows[name]}"
+        )
+    for name in Settings.model_fields:
+        assert f"`PWLREG_{name.upper()}`" in readme, f"README: setting PWLREG_{name.upper()}"
