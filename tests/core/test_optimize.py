@@ -1,0 +1,124 @@
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from core.mesh import Mesh
+from core.optimize import QuadScorer, TriangleCache, greedy_search
+from core.raster import quantize
+from core.similarity import prepare_images
+from core.triangulation import initial_mesh
+from tests.core.synthetic import book_points, open_book, texture
+
+
+def _crosses(points, e, crease=100.0):
+    a, b = points[e[0]], points[e[1]]
+    return (a[0] - crease) * (b[0] - crease) < 0
+
+
+def test_open_book_crease_edges_are_swapped():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    mesh, _ = initial_mesh(rp, mp, 25)
+    before = [e for e in mesh.internal_edges() if _crosses(mesh.reference, e)]
+    assert len(before) >= 2, "the test scene must start with crease-crossing diagonals"
+    result = greedy_search(mesh, prepare_images(ref, mov, 16))
+    assert [e for e in mesh.internal_edges() if _crosses(mesh.reference, e)] == []
+    assert {s.removed for s in result.steps} == set(before)
+    assert all(s.delta > 0.01 for s in result.steps)
+    assert result.final_mi > result.initial_mi
+    assert result.steps[-1].mi == pytest.approx(result.final_mi)
+    assert result.stopped_because.startswith("no swap")
+
+
+def test_planar_scene_no_swap_and_small_deltas():
+    # A single plane: every triangulation registers exactly; resampling noise only.
+    shape = (240, 320)
+    mov = texture(shape, 4)
+    A = np.array([[0.92, 0.1, 6.0], [-0.05, 0.95, 4.0]])
+    ref = cv2.warpAffine(mov, A, (shape[1], shape[0]), flags=cv2.WARP_INVERSE_MAP)
+    rng = np.random.default_rng(3)
+    rp = rng.uniform(5, [shape[1] - 30, shape[0] - 30], size=(60, 2))
+    mp = rp @ A[:, :2].T + A[:, 2]
+    mesh, _ = initial_mesh(rp, mp, 25)
+    images = prepare_images(ref, mov, 16)
+    scorer = QuadScorer(TriangleCache(images, mesh), "mi")
+    edges = [e for e in mesh.internal_edges() if mesh.can_swap(e)]
+    deltas = scorer.deltas(mesh, edges)
+    assert len(edges) > 50
+    assert np.abs(deltas).max() < 0.01
+    result = greedy_search(mesh, images)
+    assert result.steps == []
+
+
+def _figure6_pair(invert_right: bool):
+    """Open book whose two faces change grey levels differently between the images."""
+    ref_tex, mov = open_book(seed=7)
+    # The crease maps onto the column x = 100 of the moving image (book_map fixes it).
+    xs = np.arange(mov.shape[1])[None, :].repeat(mov.shape[0], axis=0)
+    right = xs > 100
+    mov2 = mov.astype(np.float64)
+    mov2[~right] = 0.5 * mov2[~right] + 20  # darker, lower contrast
+    if invert_right:
+        mov2[right] = 255 - mov2[right]  # contrast inversion: NCC is fooled, MI is not
+    else:
+        mov2[right] = np.clip(1.3 * mov2[right] + 30, 0, 255)
+    return ref_tex, np.round(mov2).astype(np.uint8)
+
+
+@pytest.mark.parametrize("invert_right", [False, True])
+def test_figure6_mi_picks_3d_compatible_diagonal(invert_right):
+    ref, mov = _figure6_pair(invert_right)
+    rp, mp = book_points()
+    mesh, _ = initial_mesh(rp, mp, 25)
+    greedy_search(mesh, prepare_images(ref, mov, 16), cost="mi")
+    assert [e for e in mesh.internal_edges() if _crosses(mesh.reference, e)] == []
+
+
+def test_deterministic():
+    ref, mov = open_book(seed=3)
+    rp, mp = book_points()
+    runs = []
+    for _ in range(2):
+        mesh, _ = initial_mesh(rp, mp, 25)
+        res = greedy_search(mesh, prepare_images(ref, mov, 16))
+        runs.append(([(s.removed, s.added, s.delta) for s in res.steps], mesh.triangles.tolist()))
+    assert runs[0] == runs[1]
+
+
+def test_ncc_cost_and_max_iterations():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    mesh, _ = initial_mesh(rp, mp, 25)
+    res = greedy_search(mesh, prepare_images(ref, mov, 16), cost="ncc")
+    assert [e for e in mesh.internal_edges() if _crosses(mesh.reference, e)] == []
+    mesh, _ = initial_mesh(rp, mp, 25)
+    res = greedy_search(mesh, prepare_images(ref, mov, 16), max_iterations=1)
+    assert len(res.steps) == 1 and res.stopped_because == "max_iterations reached"
+
+
+def test_progress_can_abort():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    mesh, _ = initial_mesh(rp, mp, 25)
+
+    class Stop(Exception):
+        pass
+
+    def progress(f):
+        raise Stop
+
+    with pytest.raises(Stop):
+        greedy_search(mesh, prepare_images(ref, mov, 16), progress=progress)
+
+
+def test_quad_gain_is_antisymmetric():
+    rng = np.random.default_rng(0)
+    ref = texture((100, 120), 1)
+    pts = quantize(rng.uniform(0, [119, 99], size=(20, 2)))
+    mesh = Mesh(pts, pts + 0.5, Delaunay(pts).simplices)
+    scorer = QuadScorer(TriangleCache(prepare_images(ref, ref, 16), mesh), "mi")
+    e = next(e for e in mesh.internal_edges() if mesh.can_swap(e))
+    d = scorer.deltas(mesh, [e])[0]
+    new = mesh.swap(e)
+    assert scorer.deltas(mesh, [new])[0] == pytest.approx(-d, abs=1e-12)
