@@ -49,16 +49,22 @@ def homography(angle_deg=6.0, scale=0.95, tx=12.0, ty=-8.0, px=2e-5, centre=(240
     """Homography about ``centre`` (reference -> moving pixels)."""
     a = np.deg2rad(angle_deg)
     c = np.array([[1, 0, centre[0]], [0, 1, centre[1]], [0, 0, 1.0]])
-    S = np.array([[scale * np.cos(a), -scale * np.sin(a), tx],
-                  [scale * np.sin(a), scale * np.cos(a), ty], [px, 0, 1]])
+    S = np.array(
+        [
+            [scale * np.cos(a), -scale * np.sin(a), tx],
+            [scale * np.sin(a), scale * np.cos(a), ty],
+            [px, 0, 1],
+        ]
+    )
     return c @ S @ np.linalg.inv(c)
 
 
 def warp(image: np.ndarray, H: np.ndarray, size=None) -> np.ndarray:
     """Moving image such that moving(H x) = reference(x)."""
     h, w = image.shape[:2]
-    return cv2.warpPerspective(image, H, size or (w, h), flags=cv2.INTER_CUBIC,
-                               borderMode=cv2.BORDER_REFLECT)
+    return cv2.warpPerspective(
+        image, H, size or (w, h), flags=cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT
+    )
 
 
 def transfer(H: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -109,8 +115,9 @@ def test_matchers_find_accurate_spread_pairs(planar_pair, matcher):
 def test_points_spread_over_the_image(planar_pair):
     ref, mov, _ = planar_pair
     cp = find_conjugate_points(ref, mov, opts(matcher="lk", max_points=200))
-    counts, _, _ = np.histogram2d(cp.reference[:, 1], cp.reference[:, 0], bins=(3, 4),
-                                  range=((0, 360), (0, 480)))
+    counts, _, _ = np.histogram2d(
+        cp.reference[:, 1], cp.reference[:, 0], bins=(3, 4), range=((0, 360), (0, 480))
+    )
     # Every cell of a 3x4 grid gets points (the moving image covers all but some border).
     assert np.all(counts >= 5), counts
 
@@ -240,7 +247,7 @@ def client_pairs(n=200, outliers=0.3, seed=0):
     for i in np.flatnonzero(out):
         while True:
             cand = mov[i] + rng.uniform(-40, 40, 2)
-            if sampson_distance(F, ref[i:i + 1], cand[None])[0] > 4.5:
+            if sampson_distance(F, ref[i : i + 1], cand[None])[0] > 4.5:
                 mov[i] = cand
                 break
     return ref, mov, out
@@ -343,14 +350,18 @@ def test_spread_drops_exact_duplicates():
 
 # --- real pairs -----------------------------------------------------------------------------------
 
-REAL = Path(os.environ.get(realdata.ENV_VAR) or Path(__file__).resolve().parents[2] / ".." /
-            "shared" / "data" / "real")
+REAL = Path(
+    os.environ.get(realdata.ENV_VAR)
+    or Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real"
+)
 
 
 def real_pair(name: str) -> realdata.RealPair:
     if not (REAL / name).is_dir():
-        pytest.skip(f"real data folder {REAL / name} is absent (set {realdata.ENV_VAR} to its "
-                    "location to run this test)")
+        pytest.skip(
+            f"real data folder {REAL / name} is absent (set {realdata.ENV_VAR} to its "
+            "location to run this test)"
+        )
     return realdata.load_pair(name, REAL)
 
 
