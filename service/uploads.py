@@ -16,6 +16,7 @@ from typing import BinaryIO
 
 from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
+from starlette.requests import ClientDisconnect
 
 from service.problems import Problem, invalid_input, malformed_request, upload_too_large
 
@@ -166,6 +167,14 @@ class _Receiver:
         self._part = None
 
 
+async def _until_disconnect(stream: AsyncIterator[bytes]) -> AsyncIterator[bytes]:
+    try:
+        async for chunk in stream:
+            yield chunk
+    except ClientDisconnect:
+        raise malformed_request("the client disconnected before the end of the body") from None
+
+
 async def receive_form(
     content_type: str | None,
     content_length: str | None,
@@ -226,7 +235,7 @@ async def receive_form(
         raise malformed_request(f"invalid multipart boundary: {exc}") from None
     drained = 0
     try:
-        async for chunk in stream:
+        async for chunk in _until_disconnect(stream):
             if receiver.problem is None:
                 try:
                     parser.write(chunk)

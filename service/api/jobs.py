@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import re
 import uuid
@@ -293,6 +294,13 @@ async def submit_job(
             services.settings.max_upload_bytes,
         )
         job, created = await run_in_threadpool(_accept, services, form, staging, key)
+    except OSError as exc:
+        if exc.errno != errno.ENOSPC:
+            raise
+        raise Problem(
+            507, "insufficient-storage", "Insufficient storage",
+            "the service has no disk space left for this upload; try again later",
+        ) from None
     finally:
         await run_in_threadpool(storage.discard, staging)
     response.headers["Location"] = job_href(request, job.id)
