@@ -1,0 +1,68 @@
+import json
+import zlib
+
+import cv2
+import numpy as np
+import pytest
+
+from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
+from core.io import encode_png, load_points, read_image
+
+
+def test_points_json_and_csv_agree():
+    doc = {"reference": [[1, 2], [3.5, 4]], "moving": [[5, 6], [7, 8.25]]}
+    r1, m1 = load_points(json.dumps(doc).encode())
+    r2, m2 = load_points("x,y,x_moving,y_moving\n1,2,5,6\n3.5,4,7,8.25\n")
+    np.testing.assert_array_equal(r1, r2)
+    np.testing.assert_array_equal(m1, m2)
+    assert r1.shape == (2, 2)
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("", "empty"),
+        ("{not json", "not valid JSON"),
+        ('{"reference": [[1, 2]]}', "reference"),
+        ('{"reference": [[1, 2]], "moving": [[1, 2], [3, 4]]}', "1 reference points but 2"),
+        ('{"reference": [[1, 2, 3]], "moving": [[1, 2, 3]]}', r"\[x, y\] pairs"),
+        ("a,b\n1,2\n", "header"),
+        ("x,y,x_moving,y_moving\n1,2,3\n", "four numbers"),
+        ('{"reference": [[1, NaN]], "moving": [[1, 2]]}', "non-finite"),
+    ],
+)
+def test_bad_points_are_clear_errors(text, match):
+    with pytest.raises(InputError, match=match):
+        load_points(text)
+
+
+def test_read_image_round_trip_and_limits():
+    img = (np.arange(12 * 10, dtype=np.uint16).reshape(10, 12) * 500).astype(np.uint16)
+    data = encode_png(img)
+    back = read_image(data)
+    np.testing.assert_array_equal(back, img)
+    with pytest.raises(ImageTooLargeError, match="more than the limit"):
+        read_image(data, max_pixels=100)
+    with pytest.raises(UnsupportedMediaError):
+        read_image(b"definitely not an image")
+    with pytest.raises(UnsupportedMediaError):
+        read_image(b"")
+    truncated = cv2.imencode(".png", np.zeros((50, 50), np.uint8))[1].tobytes()[:60]
+    with pytest.raises(UnsupportedMediaError):
+        read_image(truncated)
+
+
+def test_decompression_bomb_refused_before_decoding():
+    # A PNG header claiming 100000 x 100000 pixels with almost no data.
+    big = np.zeros((1, 1), np.uint8)
+    data = bytearray(cv2.imencode(".png", big)[1].tobytes())
+    data[16:24] = (100000).to_bytes(4, "big") + (100000).to_bytes(4, "big")
+    data[29:33] = zlib.crc32(bytes(data[12:29])).to_bytes(4, "big")  # keep the IHDR valid
+    with pytest.raises(ImageTooLargeError):
+        read_image(bytes(data), max_pixels=50_000_000)
+
+
+def test_grey_alpha_png_encodes_as_bgra():
+    ga = np.dstack([np.full((4, 5), 100, np.uint8), np.full((4, 5), 255, np.uint8)])
+    back = read_image(encode_png(ga))
+    assert back.shape == (4, 5, 4) and back[0, 0].tolist() == [100, 100, 100, 255]

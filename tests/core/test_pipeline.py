@@ -1,0 +1,90 @@
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from core.errors import InputError
+from core.io import read_image, write_outputs
+from core.pipeline import STAGES, register
+from tests.core.synthetic import book_points, open_book, texture
+
+
+def test_register_with_points_writes_the_file_contract(tmp_path):
+    ref, mov = open_book()
+    rp, mp = book_points()
+    seen = []
+    result = register(
+        ref, mov, (rp, mp), {"epipolar_filter": False}, progress=lambda s, f: seen.append(s)
+    )
+    assert [s for i, s in enumerate(seen) if i == 0 or seen[i - 1] != s] == list(STAGES)
+    assert len(result.search.steps) >= 2
+    paths = write_outputs(result, tmp_path)
+    mesh = json.loads(paths["mesh"].read_text())
+    for key in (
+        "reference_vertices",
+        "moving_vertices",
+        "initial_triangles",
+        "final_triangles",
+        "swaps",
+        "parameters",
+        "matching",
+    ):
+        assert key in mesh
+    assert mesh["swaps"][0].keys() >= {"removed", "added", "delta"}
+    assert mesh["parameters"]["cost"] == "mi"
+    conv = json.loads(paths["convergence"].read_text())
+    assert conv["initial"].keys() >= {"mi", "nmi"} and conv["final"]["mi"] > conv["initial"]["mi"]
+    assert conv["iterations"][0].keys() >= {
+        "iteration",
+        "removed",
+        "added",
+        "delta",
+        "mi",
+        "nmi",
+        "elapsed_s",
+    }
+    assert conv["stopped_because"]
+    png = read_image(paths["registered"])
+    assert png.shape == (ref.shape[0], ref.shape[1], 4)
+    # The registered image matches the reference where the mesh is correct (after the swaps).
+    alpha = png[..., 3] > 0
+    err = np.abs(png[..., 0].astype(int) - ref.astype(int))[alpha]
+    assert np.median(err) <= 2
+    assert "swaps" in result.summary()
+
+
+def test_register_finds_points_automatically():
+    shape = (240, 320)
+    mov = texture(shape, 11, sigma=1.5)
+    A = np.array([[0.97, 0.05, 4.0], [-0.04, 0.99, 3.0]])
+    ref = cv2.warpAffine(mov, A, (shape[1], shape[0]), flags=cv2.WARP_INVERSE_MAP)
+    result = register(ref, mov, options={"max_points": 200})
+    assert result.points.source in ("lk", "sift")
+    assert len(result.reference_vertices) >= 50
+    pred = result.reference_vertices @ A[:, :2].T + A[:, 2]
+    assert np.median(np.linalg.norm(pred - result.moving_vertices, axis=1)) < 0.5
+
+
+def test_invalid_options_and_points_are_input_errors():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    with pytest.raises(InputError) as err:
+        register(ref, mov, (rp, mp), {"bins": 1})
+    assert err.value.field == "options.bins"
+    with pytest.raises(InputError) as err:
+        register(ref, mov, (rp, mp), {"no_such_option": 1})
+    assert err.value.field == "options.no_such_option"
+    with pytest.raises(InputError):
+        register(ref, mov, (rp, mp[:-1]), {"epipolar_filter": False})
+    with pytest.raises(InputError):
+        register(ref.astype(np.float32), mov, (rp, mp))
+
+
+def test_optimizer_none_keeps_delaunay():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    result = register(ref, mov, (rp, mp), {"optimizer": "none", "epipolar_filter": False})
+    assert result.search.steps == []
+    np.testing.assert_array_equal(result.initial_triangles, result.final_triangles)
+    assert result.search.initial_mi == result.search.final_mi > 0

@@ -1,0 +1,60 @@
+import numpy as np
+import pytest
+
+from core.errors import InputError, NotEnoughPointsError
+from core.mesh import Mesh
+from core.triangulation import deduplicate, initial_mesh, repair_patch_reversals
+
+
+def test_duplicates_removed_in_either_image():
+    ref = np.array([[0, 0], [10, 0], [0, 10], [0, 0], [5, 5]], float)
+    mov = np.array([[0, 0], [10, 0], [0, 10], [3, 3], [10, 0]], float)
+    r, m, dropped = deduplicate(ref, mov)
+    assert dropped == 2 and len(r) == 3
+
+
+def test_small_triangles_discarded():
+    ref = np.array([[0, 0], [100, 0], [0, 100], [100, 100], [50, 0.2]], float)
+    mesh, report = initial_mesh(ref, ref, min_triangle_area=25)
+    assert report.small_triangles_removed >= 1
+    areas = []
+    for a, b, c in mesh.triangles:
+        d1, d2 = ref[b] - ref[a], ref[c] - ref[a]
+        areas.append(abs(d1[0] * d2[1] - d1[1] * d2[0]) / 2)
+    assert min(areas) >= 25
+
+
+def test_collinear_and_too_few_points_are_clear_errors():
+    with pytest.raises(InputError, match="collinear"):
+        initial_mesh(
+            np.array([[0, 0], [1, 1], [2, 2], [3, 3]], float),
+            np.array([[0, 0], [1, 1], [2, 2], [3, 3]], float),
+            0,
+        )
+    with pytest.raises(NotEnoughPointsError, match="at least 3"):
+        initial_mesh(np.array([[0, 0], [1, 1]], float), np.array([[0, 0], [1, 1]], float), 0)
+
+
+def test_reversal_on_boundary_removes_triangle():
+    ref = np.array([[0, 0], [10, 0], [0, 10], [10, 10]], float)
+    mov = ref.copy()
+    mov[3] = [-5, -5]  # vertex 3 jumps across: triangle (1, 3, 2) flips
+    mesh = Mesh(ref, mov, [[0, 1, 2], [1, 3, 2]])
+    actions, left = repair_patch_reversals(mesh)
+    assert left == 0 and mesh.reversed_slots() == []
+    assert actions[0]["action"] == "remove"
+
+
+def test_interior_reversal_repaired_by_swap():
+    # A fan around the centre vertex 4; in the moving image vertex 4 crosses edge (0, 1)
+    # towards vertex 5, which flips the interior triangle (0, 1, 4) only.
+    ref = np.array([[0, 0], [20, 0], [20, 20], [0, 20], [10, 8], [10, -10]], float)
+    tris = [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4], [0, 5, 1]]
+    mov = ref.copy()
+    mov[4] = [10, -3]
+    mesh = Mesh(ref, mov, tris)
+    assert len(mesh.reversed_slots()) >= 1
+    actions, left = repair_patch_reversals(mesh)
+    assert left == 0 and mesh.reversed_slots() == []
+    assert actions == [{"action": "swap", "removed": [0, 1], "added": [4, 5]}]
+    assert mesh.n_triangles == 5
