@@ -1,11 +1,11 @@
 """The worker: runs one job in a worker process, from its stored inputs to its stored results.
 
-:func:`run_job` claims the job (accepted -> running, under a lease), reads the inputs, calls the
+:func:`run_job` claims the job (accepted -> running, under a lease), loads the inputs, calls the
 registration function (``core.pipeline.register`` unless the settings name another) and stores
-the results. The progress callback it passes to the registration writes the stage and progress
-to the job row, renews the lease and checks, at most every ``progress_interval`` seconds, that
-the job was not dismissed, is within its time limit and that the service is not shutting down;
-otherwise it raises, which stops the registration at its next progress report.
+the results. While it runs, a heartbeat thread writes the stage and progress to the job row,
+renews the lease and notices a dismissal; the progress callback passed to the registration
+raises when the job was dismissed, ran past its time limit or the service is shutting down,
+which stops the registration at its next progress report.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from typing import Any, Protocol
 from pydantic import ValidationError
 
 from core.errors import InputError
-from core.io import load_points, read_image, write_outputs
+from core.io import load_points, write_outputs
 from core.options import RegistrationOptions
 from service.settings import Settings
 from service.storage import RESULTS, LocalStorage
@@ -290,17 +290,12 @@ def run_job(job_id: str, context: WorkerContext) -> str:
 
     try:
         with reporter.running():
-            reference = read_image(
-                storage.input_path(job_id, "reference"), settings.max_pixels, field="reference"
-            )
-            moving = read_image(
-                storage.input_path(job_id, "moving"), settings.max_pixels, field="moving"
-            )
+            # Decoded (with the pixel limit) and checked by the API at submission.
+            reference = storage.load_image(job_id, "reference")
+            moving = storage.load_image(job_id, "moving")
             points = None
             if job.has_points:
-                points = load_points(
-                    storage.input_path(job_id, "points").read_bytes(), field="points"
-                )
+                points = load_points(storage.points_path(job_id).read_bytes(), field="points")
             options = RegistrationOptions.model_validate(job.options)
             runner = context.get_runner()
             result = runner(reference, moving, points=points, options=options, progress=reporter)

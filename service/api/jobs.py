@@ -6,10 +6,13 @@ import errno
 import json
 import re
 import uuid
+from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import wait as wait_futures
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
+import numpy as np
 from fastapi import APIRouter, Depends, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
@@ -42,6 +45,8 @@ FORM_PARTS = ("reference", "moving", "points", "options")
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
 RESULT_ROUTES = {"mesh": "mesh", "registered": "registered.png", "convergence": "convergence"}
 _KEY_PATTERN = re.compile(r"^[\x21-\x7e]{1,255}$")
+_VALIDATION_POOL = ThreadPoolExecutor(max_workers=4, thread_name_prefix="decode")
+"""Decodes the second image of a submission while the request's thread decodes the first."""
 
 
 # --- status documents ----------------------------------------------------------------------
@@ -111,7 +116,9 @@ def parse_options(data: bytes) -> dict[str, Any]:
         raise from_validation_error(exc, prefix="options") from None
 
 
-def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, Any], bool]:
+def validate_submission(
+    form: ReceivedForm, max_pixels: int
+) -> tuple[dict[str, Any], bool, dict[str, np.ndarray]]:
     """Check every part of a submission, cheapest first.
 
     Returns
@@ -120,6 +127,8 @@ def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, 
         The effective options.
     has_points : bool
         True if conjugate points were sent.
+    images : dict of str to ndarray
+        The decoded reference and moving images.
 
     Raises
     ------
@@ -139,12 +148,20 @@ def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, 
     try:
         if has_points:
             load_points(form.parts["points"].path.read_bytes(), field="points")
-        for name in ("reference", "moving"):
-            # Decoding checks the pixel count from the header before decoding.
-            read_image(form.parts[name].path, max_pixels, field=name)
+        # core.io decodes with the pixel limit checked from the header first; the two images
+        # are decoded at the same time (the decoder releases the GIL).
+        moving = _VALIDATION_POOL.submit(
+            read_image, form.parts["moving"].path, max_pixels, "moving"
+        )
+        try:
+            reference = read_image(form.parts["reference"].path, max_pixels, field="reference")
+        except BaseException:
+            wait_futures([moving])  # the reference's error is the one reported
+            raise
+        moving_image = moving.result()
     except InputError as exc:
         raise from_input_error(exc) from None
-    return options, has_points
+    return options, has_points, {"reference": reference, "moving": moving_image}
 
 
 def _check_key(key: str | None) -> str | None:
@@ -172,7 +189,9 @@ def _accept(
                     existing.id,
                 )
             return existing, False
-    options, has_points = validate_submission(form, settings.max_pixels)
+    options, has_points, images = validate_submission(form, settings.max_pixels)
+    for name, image in images.items():
+        storage.stage_image(staging, name, image)
     job_id = uuid.uuid4().hex
     # Files first, then the row: a crash in between leaves files without a row (swept later),
     # never a row without its files.

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import update
 
+from core.io import read_image
 from core.options import RegistrationOptions
 from core.pipeline import register
 from service.maintenance import Janitor
@@ -57,8 +58,8 @@ def context(settings: Settings) -> WorkerContext:
 
 def add_job(ctx: WorkerContext, pair: Pair, key: str | None = None) -> str:
     staging = ctx.storage.new_staging()
-    (staging / "reference").write_bytes(pair.reference_png)
-    (staging / "moving").write_bytes(pair.moving_png)
+    ctx.storage.stage_image(staging, "reference", read_image(pair.reference_png))
+    ctx.storage.stage_image(staging, "moving", read_image(pair.moving_png))
     (staging / "points").write_bytes(pair.points_json)
     job_id = os.urandom(16).hex()
     ctx.storage.commit_inputs(staging, job_id)
