@@ -18,7 +18,6 @@ from PIL import Image, UnidentifiedImageError
 
 from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
 from core.imaging import check_image
-from core.warp import MAX_SIDE
 
 if TYPE_CHECKING:
     from core.pipeline import RegistrationResult
@@ -54,7 +53,7 @@ def read_image(
     UnsupportedMediaError
         Not a decodable image of a supported kind.
     ImageTooLargeError
-        Over ``max_pixels`` or a side longer than 32766 pixels.
+        Over ``max_pixels``.
     """
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
     if not data:
@@ -70,11 +69,6 @@ def read_image(
         raise ImageTooLargeError(
             f"{field} has {width}x{height} = {width * height} pixels, more than the limit of "
             f"{max_pixels}",
-            field,
-        )
-    if max(width, height) > MAX_SIDE:
-        raise ImageTooLargeError(
-            f"{field} is {width}x{height}; sides longer than {MAX_SIDE} pixels are not supported",
             field,
         )
     image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)

@@ -149,8 +149,12 @@ class Matches:
     def subset(self, keep: np.ndarray) -> Matches:
         """Same matches restricted to a boolean mask or index array."""
         return Matches(
-            self.reference[keep], self.moving[keep], self.score[keep], self.source,
-            dict(self.counts), dict(self.rejected),
+            self.reference[keep],
+            self.moving[keep],
+            self.score[keep],
+            self.source,
+            dict(self.counts),
+            dict(self.rejected),
         )
 
 
@@ -194,9 +198,12 @@ def _inside(points: np.ndarray, shape: tuple[int, ...], margin: float = 0.0) -> 
     h, w = shape[:2]
     x, y = points[:, 0], points[:, 1]
     return (
-        np.isfinite(x) & np.isfinite(y)
-        & (x >= -0.5 - margin) & (x <= w - 0.5 + margin)
-        & (y >= -0.5 - margin) & (y <= h - 0.5 + margin)
+        np.isfinite(x)
+        & np.isfinite(y)
+        & (x >= -0.5 - margin)
+        & (x <= w - 0.5 + margin)
+        & (y >= -0.5 - margin)
+        & (y <= h - 0.5 + margin)
     )
 
 
@@ -261,8 +268,13 @@ def detect_corners(
     """
     level, scale = _downscale(gray, DETECT_SIDE)
     corners = cv2.goodFeaturesToTrack(
-        level, maxCorners=int(max_corners), qualityLevel=quality,
-        minDistance=max(1.0, min_distance * scale), blockSize=3, useHarrisDetector=True, k=0.04,
+        level,
+        maxCorners=int(max_corners),
+        qualityLevel=quality,
+        minDistance=max(1.0, min_distance * scale),
+        blockSize=3,
+        useHarrisDetector=True,
+        k=0.04,
     )
     if corners is None:
         return np.empty((0, 2))
@@ -271,10 +283,17 @@ def detect_corners(
     # cornerSubPix needs the search window inside the image.
     pts = pts[(pts[:, 0] >= 6) & (pts[:, 0] <= w - 7) & (pts[:, 1] >= 6) & (pts[:, 1] <= h - 7)]
     if len(pts):
-        refined = cv2.cornerSubPix(
-            gray, pts.astype(np.float32).reshape(-1, 1, 2), (5, 5), (-1, -1),
-            (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
-        ).reshape(-1, 2).astype(np.float64)
+        refined = (
+            cv2.cornerSubPix(
+                gray,
+                pts.astype(np.float32).reshape(-1, 1, 2),
+                (5, 5),
+                (-1, -1),
+                (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01),
+            )
+            .reshape(-1, 2)
+            .astype(np.float64)
+        )
         # A refinement that leaves its 11x11 window found no corner there: keep the detection.
         moved = np.linalg.norm(refined - pts, axis=1) > 5.0
         pts = np.where(moved[:, None], pts, refined)
@@ -383,8 +402,12 @@ def match_lk(
     h, w = a.shape
     # Moving image resampled into the reference frame: warped(x) = moving(H x).
     warped = cv2.warpPerspective(
-        b, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+        b,
+        H,
+        (w, h),
+        flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
     )
     counts: dict[str, int] = {}
     rejected: dict[str, int] = {}
@@ -569,7 +592,8 @@ def _epipolar(
     needed = MIN_PAIRS[options.epipolar_model]
     if len(ref) < needed:
         raise NotEnoughPointsError(
-            len(ref), needed,
+            len(ref),
+            needed,
             f"{stage} (the {options.epipolar_model} epipolar filter cannot reject outliers "
             f"robustly from fewer pairs; set epipolar_filter to false to use them unfiltered)",
         )
@@ -663,8 +687,9 @@ def _automatic(
     seed = options.seed
 
     def lk(prior: np.ndarray | None = None) -> Matches:
-        return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=seed,
-                        prior=prior)
+        return match_lk(
+            ref_gray, mov_gray, candidates, options.min_distance, seed=seed, prior=prior
+        )
 
     if options.matcher == "lk":
         result = _try_filter(lk(), options)

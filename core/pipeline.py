@@ -23,7 +23,7 @@ from core.similarity import (
     triangle_statistics,
 )
 from core.triangulation import TriangulationReport, initial_mesh
-from core.warp import MAX_SIDE, warp_image
+from core.warp import warp_image
 
 Progress = Callable[[str, float], None]
 STAGES = ("matching", "triangulating", "optimizing", "rendering")
@@ -142,9 +142,6 @@ def register(
     opts = parse_options(options)
     check_image(reference, "reference")
     check_image(moving, "moving")
-    for name, img in (("reference", reference), ("moving", moving)):
-        if max(img.shape[:2]) > MAX_SIDE:
-            raise InputError(f"{name} has a side longer than {MAX_SIDE} pixels", name)
 
     def report(stage: str, fraction: float) -> None:
         if progress is not None:

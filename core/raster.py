@@ -7,7 +7,8 @@ Pixel ``(x, y)`` is the point at the centre of column ``x`` and row ``y`` (x rig
 ``1 / SUBPIXEL`` pixel (:func:`quantize`), so every geometric predicate below is evaluated in
 exact int64 arithmetic.
 
-Fill rule: a pixel centre belongs to a triangle when it lies strictly inside, or on an edge
+Fill rule (implemented once, in :func:`core.kernels.row_span`): a pixel centre belongs to a
+triangle when it lies strictly inside, or on an edge
 or vertex and the point displaced by an infinitesimal ``(d, d**2)`` lies inside (a symbolic
 perturbation; for pixel centres on a horizontal edge the pixel goes to the triangle below,
 otherwise to the triangle on the right). Triangles that tile a region therefore own every
@@ -21,19 +22,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SUBPIXEL = 256
-"""Vertex coordinates are multiples of ``1 / SUBPIXEL`` pixel."""
+from core import kernels
 
-_BIG = np.int64(2**62)
+SUBPIXEL = kernels.SUBPIXEL
+"""Vertex coordinates are multiples of ``1 / SUBPIXEL`` pixel."""
 
 
 def quantize(points: np.ndarray) -> np.ndarray:
     """Round coordinates (pixels) to the ``1 / SUBPIXEL`` grid used by every predicate."""
-    return np.rint(np.asarray(points, dtype=np.float64) * SUBPIXEL) / SUBPIXEL
+    return fixed_point(points) / SUBPIXEL
 
 
-def _fixed(points: np.ndarray) -> np.ndarray:
-    return np.rint(np.asarray(points, dtype=np.float64) * SUBPIXEL).astype(np.int64)
+def fixed_point(points: np.ndarray) -> np.ndarray:
+    """Coordinates as int64 multiples of ``1 / SUBPIXEL`` pixel (the kernels' input)."""
+    # floor(v + 0.5), as kernels.to_fixed: the kernels quantize their input the same way.
+    return np.floor(np.asarray(points, dtype=np.float64) * SUBPIXEL + 0.5).astype(np.int64)
 
 
 def orientation(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -42,7 +45,7 @@ def orientation(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     ``a``, ``b``, ``c`` are ``(..., 2)`` arrays of quantized pixel coordinates. In image axes
     (y down) a positive sign means the vertices turn clockwise on screen.
     """
-    a, b, c = _fixed(a), _fixed(b), _fixed(c)
+    a, b, c = fixed_point(a), fixed_point(b), fixed_point(c)
     cross = (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (
         c[..., 0] - a[..., 0]
     )
@@ -100,62 +103,9 @@ def rasterize(tri_xy: np.ndarray, shape: tuple[int, int]) -> Spans:
     Spans
         Runs ordered by triangle, then row.
     """
-    height, width = int(shape[0]), int(shape[1])
-    q = _fixed(tri_xy).reshape(-1, 3, 2)
-    cross = (q[:, 1, 0] - q[:, 0, 0]) * (q[:, 2, 1] - q[:, 0, 1]) - (q[:, 1, 1] - q[:, 0, 1]) * (
-        q[:, 2, 0] - q[:, 0, 0]
-    )
-    # Make every triangle positively oriented so that its interior is where all edge
-    # functions are positive.
-    flip = cross < 0
-    q[flip] = q[flip][:, [0, 2, 1]]
-    alive = cross != 0
-
-    ys = q[:, :, 1]
-    ymin = -((-ys.min(axis=1)) // SUBPIXEL)  # ceil
-    ymax = ys.max(axis=1) // SUBPIXEL  # floor
-    ymin = np.maximum(ymin, 0)
-    ymax = np.minimum(ymax, height - 1)
-    nrows = np.where(alive, np.maximum(ymax - ymin + 1, 0), 0)
-    total = int(nrows.sum())
-    empty = np.zeros(0, dtype=np.intp)
-    if total == 0:
-        return Spans(empty, empty, empty, empty)
-
-    tri = np.repeat(np.arange(len(q), dtype=np.intp), nrows)
-    starts = np.cumsum(nrows) - nrows
-    y = ymin[tri] + (np.arange(total, dtype=np.int64) - np.repeat(starts, nrows))
-    py = y * SUBPIXEL
-
-    lo = np.zeros(total, dtype=np.int64)
-    hi = np.full(total, width - 1, dtype=np.int64)
-    keep = np.ones(total, dtype=bool)
-    for e in range(3):
-        a = q[tri, e]
-        b = q[tri, (e + 1) % 3]
-        dx = b[:, 0] - a[:, 0]
-        dy = b[:, 1] - a[:, 1]
-        # Edge function E(px) = -dy * PX + k with PX = px * SUBPIXEL; inside is E > 0, and
-        # E == 0 counts as inside when the perturbation (d, d^2) enters: -dy > 0, or dy == 0
-        # and dx > 0.
-        k = dx * (py - a[:, 1]) + dy * a[:, 0]
-        den = np.abs(dy) * SUBPIXEL
-        safe = np.where(den == 0, 1, den)
-        # dy < 0: px >= ceil(-k / den) = -(k // den)
-        lower = np.where(dy < 0, -(k // safe), -_BIG)
-        # dy > 0: px < k / den  <=>  px <= ceil(k / den) - 1
-        upper = np.where(dy > 0, -((-k) // safe) - 1, _BIG)
-        lo = np.maximum(lo, lower)
-        hi = np.minimum(hi, upper)
-        flat = dy == 0
-        keep &= ~flat | (k > 0) | ((k == 0) & (dx > 0))
-    keep &= lo <= hi
-    return Spans(
-        triangle=tri[keep],
-        y=y[keep].astype(np.intp),
-        x0=lo[keep].astype(np.intp),
-        length=(hi[keep] - lo[keep] + 1).astype(np.intp),
-    )
+    tris = np.ascontiguousarray(tri_xy, dtype=np.float64).reshape(-1, 3, 2)
+    tri, y, x0, length = kernels.spans(tris, int(shape[0]), int(shape[1]))
+    return Spans(triangle=tri, y=y, x0=x0, length=length)
 
 
 def expand(spans: Spans) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -198,19 +148,8 @@ def affine_maps(src_tri: np.ndarray, dst_tri: np.ndarray) -> np.ndarray:
     ndarray, shape (T, 2, 3)
         ``A`` with ``dst = A @ [x, y, 1]``. Degenerate source triangles get NaN.
     """
-    src = np.asarray(src_tri, dtype=np.float64)
-    dst = np.asarray(dst_tri, dtype=np.float64)
-    # Solve in coordinates relative to the first vertex: better conditioned for large images.
-    d1 = src[:, 1] - src[:, 0]
-    d2 = src[:, 2] - src[:, 0]
-    det = d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = (
-            np.stack([np.stack([d2[:, 1], -d2[:, 0]], -1), np.stack([-d1[:, 1], d1[:, 0]], -1)], 1)
-            / det[:, None, None]
-        )
-    e1 = dst[:, 1] - dst[:, 0]
-    e2 = dst[:, 2] - dst[:, 0]
-    lin = np.stack([e1, e2], axis=-1) @ inv  # (T, 2, 2)
-    trans = dst[:, 0] - np.einsum("tij,tj->ti", lin, src[:, 0])
-    return np.concatenate([lin, trans[:, :, None]], axis=2)
+    src = np.ascontiguousarray(src_tri, dtype=np.float64).reshape(-1, 3, 2)
+    dst = np.ascontiguousarray(dst_tri, dtype=np.float64).reshape(-1, 3, 2)
+    out = np.empty((len(src), 2, 3))
+    kernels.affine_maps(src, dst, out)
+    return out

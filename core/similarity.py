@@ -15,14 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core import kernels
 from core.imaging import max_value, to_gray
-from core.raster import affine_maps, rasterize, triangle_areas
-from core.warp import map_spans, sample_bilinear
 
 MOMENTS = ("n", "sum_a", "sum_b", "sum_aa", "sum_bb", "sum_ab")
 """Order of the per-triangle moments (a: reference grey level, b: resampled moving level)."""
-
-_CHUNK_PIXELS = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -35,7 +32,7 @@ class ScoringImages:
         ``(height, width)`` of the reference image.
     bins : int
         Grey-level bins per image (M).
-    reference_bins : ndarray of uint8/uint16, shape (H * W,)
+    reference_bins : ndarray of int32, shape (H * W,)
         Bin of every reference pixel, row-major.
     reference_values : ndarray of float32, shape (H * W,)
         Reference grey level of every pixel, scaled to [0, 1].
@@ -63,15 +60,13 @@ def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> Scor
     mov = to_gray(moving)
     g_ref = max_value(ref)
     g_mov = max_value(mov)
-    ref_bins = (ref.astype(np.int64) * bins // (g_ref + 1)).astype(
-        np.uint8 if bins <= 256 else np.uint16
-    )
+    ref_bins = (ref.astype(np.int64) * bins // (g_ref + 1)).astype(np.int32)
     return ScoringImages(
         shape=(ref.shape[0], ref.shape[1]),
         bins=bins,
         reference_bins=ref_bins.ravel(),
         reference_values=(ref.astype(np.float32) / g_ref).ravel(),
-        moving=mov.astype(np.float32) / g_mov,
+        moving=np.ascontiguousarray(mov.astype(np.float32) / g_mov),
         moving_bin_scale=bins * g_mov / (g_mov + 1.0),
     )
 
@@ -99,49 +94,27 @@ def triangle_statistics(
         Row-major joint histogram ``h[a * M + b]`` (a: reference bin, b: moving bin).
     moments : ndarray of float64, shape (T, 6) or None
     """
-    ref_tri = np.asarray(reference_triangles, dtype=np.float64).reshape(-1, 3, 2)
-    mov_tri = np.asarray(moving_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    ref_tri = np.ascontiguousarray(reference_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    mov_tri = np.ascontiguousarray(moving_triangles, dtype=np.float64).reshape(-1, 3, 2)
     n_tri = len(ref_tri)
     m = images.bins
     hist = np.zeros((n_tri, m * m), dtype=np.int64)
-    moments = np.zeros((n_tri, 6), dtype=np.float64) if with_moments else None
-    if n_tri == 0:
-        return hist, moments
-    maps = affine_maps(ref_tri, mov_tri)
-    # Bound the memory of one pass: group triangles by their (over-)estimated pixel count.
-    width = images.shape[1]
-    estimate = (
-        triangle_areas(ref_tri)
-        + np.abs(np.diff(ref_tri[:, [0, 1, 2, 0]], axis=1)).sum(axis=(1, 2))
-        + 1
-    )
-    bounds = np.searchsorted(
-        np.cumsum(estimate), np.arange(1, 1 + estimate.sum() // _CHUNK_PIXELS) * _CHUNK_PIXELS
-    )
-    edges = np.unique(np.concatenate([[0], bounds, [n_tri]]))
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
-        spans = rasterize(ref_tri[lo:hi], images.shape)
-        if spans.n_pixels == 0:
-            continue
-        flat, mx, my = map_spans(spans, maps[lo:hi], width)
-        values = sample_bilinear(images.moving, mx, my)
-        key = np.repeat(spans.triangle * (m * m), spans.length)
-        key += images.reference_bins[flat] * m
-        # Resampled values stay within [0, 1], so their bins need no clipping.
-        key += (values * images.moving_bin_scale).astype(np.intp)
-        hist[lo:hi] += np.bincount(key, minlength=(hi - lo) * m * m).reshape(hi - lo, m * m)
-        if moments is not None:
-            tri = np.repeat(spans.triangle, spans.length)
-            a = images.reference_values[flat].astype(np.float64)
-            b = values.astype(np.float64)
-            k = hi - lo
-            moments[lo:hi, 0] += np.bincount(tri, minlength=k)
-            moments[lo:hi, 1] += np.bincount(tri, a, minlength=k)
-            moments[lo:hi, 2] += np.bincount(tri, b, minlength=k)
-            moments[lo:hi, 3] += np.bincount(tri, a * a, minlength=k)
-            moments[lo:hi, 4] += np.bincount(tri, b * b, minlength=k)
-            moments[lo:hi, 5] += np.bincount(tri, a * b, minlength=k)
-    return hist, moments
+    moments = np.zeros((n_tri if with_moments else 0, 6), dtype=np.float64)
+    if n_tri:
+        kernels.triangle_histograms(
+            ref_tri,
+            mov_tri,
+            images.reference_bins,
+            images.reference_values,
+            images.moving,
+            images.shape[1],
+            images.shape[0],
+            m,
+            images.moving_bin_scale,
+            hist,
+            moments,
+        )
+    return hist, (moments if with_moments else None)
 
 
 def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,25 +134,13 @@ def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndar
     nmi : ndarray, shape (...)
         ``MI / H(A, B)`` (0 where ``H(A, B) == 0``).
     """
-    h = np.asarray(hist, dtype=np.float64)
-    h = h.reshape(h.shape[:-1] + (bins, bins))
-    n = h.sum(axis=(-2, -1))
-    safe_n = np.where(n > 0, n, 1.0)[..., None, None]
-    p = h / safe_n
-    pa = p.sum(axis=-1)
-    pb = p.sum(axis=-2)
-    h_ab = _entropy(p.reshape(p.shape[:-2] + (-1,)))
-    h_a = _entropy(pa)
-    h_b = _entropy(pb)
-    mi = np.maximum(h_a + h_b - h_ab, 0.0)
-    nmi = np.where(h_ab > 0, mi / np.where(h_ab > 0, h_ab, 1.0), 0.0)
-    return mi, nmi
-
-
-def _entropy(p: np.ndarray) -> np.ndarray:
-    with np.errstate(divide="ignore", invalid="ignore"):
-        terms = np.where(p > 0, p * np.log2(np.where(p > 0, p, 1.0)), 0.0)
-    return -terms.sum(axis=-1)
+    h = np.asarray(hist)
+    lead = h.shape[:-1]
+    rows = np.ascontiguousarray(h.reshape(-1, bins * bins), dtype=np.float64)
+    mi = np.empty(len(rows))
+    nmi = np.empty(len(rows))
+    kernels.information(rows, bins, mi, nmi)
+    return mi.reshape(lead), nmi.reshape(lead)
 
 
 def ncc(moments: np.ndarray) -> np.ndarray:

@@ -1,0 +1,333 @@
+"""Compiled inner loops (numba): the fill rule, per-triangle histograms and the warp.
+
+These are the hot paths of pwlreg. Each loops over the pixels of each triangle once, computing
+the affine map, the bilinear sample and the histogram bin on the fly, so no per-pixel array is
+ever materialized: the cost is a few nanoseconds per pixel and a few microseconds per call, which
+is what lets the greedy search re-score a quad after every swap cheaply. Callers are in
+:mod:`core.raster`, :mod:`core.similarity` and :mod:`core.warp`; the conventions are theirs:
+vertices are int64 fixed-point coordinates (``SUBPIXEL`` units per pixel), pixel ``(x, y)`` is
+the centre of column ``x``, row ``y``.
+
+The fill rule lives in :func:`row_span` alone; every kernel calls it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+SUBPIXEL = 256
+
+
+@njit(cache=True, inline="always")
+def to_fixed(value: float) -> int:
+    """Nearest multiple of ``1 / SUBPIXEL`` (ties up), in ``SUBPIXEL`` units."""
+    return int(np.floor(value * SUBPIXEL + 0.5))
+
+
+@njit(cache=True, inline="always")
+def _load_triangle(tri: np.ndarray, q: np.ndarray) -> int:
+    """Fixed-point copy of a float ``(3, 2)`` triangle into ``q``, positively oriented.
+
+    Returns 0 for a degenerate triangle, 1 otherwise.
+    """
+    for v in range(3):
+        q[v, 0] = to_fixed(tri[v, 0])
+        q[v, 1] = to_fixed(tri[v, 1])
+    return _orient_triangle(q)
+
+
+@njit(cache=True, inline="always")
+def _affine(src: np.ndarray, dst: np.ndarray, out: np.ndarray) -> None:
+    """Affine map ``out`` (2, 3) with ``dst = out @ [x, y, 1]`` for the three vertex pairs.
+
+    Solved relative to the first vertex (better conditioned for large images); NaN for a
+    degenerate source triangle.
+    """
+    d1x = src[1, 0] - src[0, 0]
+    d1y = src[1, 1] - src[0, 1]
+    d2x = src[2, 0] - src[0, 0]
+    d2y = src[2, 1] - src[0, 1]
+    det = d1x * d2y - d1y * d2x
+    if det == 0.0:
+        out[:] = np.nan
+        return
+    for r in range(2):
+        e1 = dst[1, r] - dst[0, r]
+        e2 = dst[2, r] - dst[0, r]
+        a = (e1 * d2y - e2 * d1y) / det
+        b = (e2 * d1x - e1 * d2x) / det
+        out[r, 0] = a
+        out[r, 1] = b
+        out[r, 2] = dst[0, r] - a * src[0, 0] - b * src[0, 1]
+
+
+@njit(cache=True)
+def affine_maps(src_tris, dst_tris, out):  # type: ignore[no-untyped-def]
+    """``out[t]`` (2, 3): the affine map taking ``src_tris[t]`` onto ``dst_tris[t]``."""
+    for t in range(src_tris.shape[0]):
+        _affine(src_tris[t], dst_tris[t], out[t])
+
+
+@njit(cache=True, inline="always")
+def _orient_triangle(q: np.ndarray) -> int:
+    """Sign of the fixed-point triangle's area; flips ``q`` in place to make it positive."""
+    cross = (q[1, 0] - q[0, 0]) * (q[2, 1] - q[0, 1]) - (q[1, 1] - q[0, 1]) * (q[2, 0] - q[0, 0])
+    if cross < 0:
+        for c in range(2):
+            tmp = q[1, c]
+            q[1, c] = q[2, c]
+            q[2, c] = tmp
+        return 1
+    return 1 if cross > 0 else 0
+
+
+@njit(cache=True, inline="always")
+def _row_range(q: np.ndarray, height: int) -> tuple[int, int]:
+    ymin = min(q[0, 1], q[1, 1], q[2, 1])
+    ymax = max(q[0, 1], q[1, 1], q[2, 1])
+    lo = -((-ymin) // SUBPIXEL)
+    hi = ymax // SUBPIXEL
+    return max(lo, 0), min(hi, height - 1)
+
+
+@njit(cache=True, inline="always")
+def row_span(q: np.ndarray, y: int, width: int) -> tuple[int, int]:
+    """First and last column owned on row ``y`` by the positively oriented triangle ``q``.
+
+    Inside means every edge function ``E`` is positive; ``E == 0`` counts as inside when the
+    pixel centre displaced by an infinitesimal ``(d, d**2)`` enters the triangle. Empty rows give
+    ``hi < lo``.
+    """
+    py = y * SUBPIXEL
+    lo = 0
+    hi = width - 1
+    for e in range(3):
+        ax = q[e, 0]
+        ay = q[e, 1]
+        bx = q[(e + 1) % 3, 0]
+        by = q[(e + 1) % 3, 1]
+        dx = bx - ax
+        dy = by - ay
+        k = dx * (py - ay) + dy * ax
+        if dy < 0:
+            lower = -(k // (-dy * SUBPIXEL))
+            if lower > lo:
+                lo = lower
+        elif dy > 0:
+            upper = -((-k) // (dy * SUBPIXEL)) - 1
+            if upper < hi:
+                hi = upper
+        elif not (k > 0 or (k == 0 and dx > 0)):
+            return 0, -1
+    return lo, hi
+
+
+@njit(cache=True)
+def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped-def]
+    """Runs ``(triangle, y, x0, length)`` of pixels owned by each triangle (T, 3, 2)."""
+    n_tri = tris.shape[0]
+    q = np.empty((3, 2), dtype=np.int64)
+    count = 0
+    for t in range(n_tri):
+        if _load_triangle(tris[t], q) == 0:
+            continue
+        y0, y1 = _row_range(q, height)
+        for y in range(y0, y1 + 1):
+            lo, hi = row_span(q, y, width)
+            if lo <= hi:
+                count += 1
+    tri = np.empty(count, dtype=np.intp)
+    ys = np.empty(count, dtype=np.intp)
+    x0 = np.empty(count, dtype=np.intp)
+    length = np.empty(count, dtype=np.intp)
+    i = 0
+    for t in range(n_tri):
+        if _load_triangle(tris[t], q) == 0:
+            continue
+        y0, y1 = _row_range(q, height)
+        for y in range(y0, y1 + 1):
+            lo, hi = row_span(q, y, width)
+            if lo <= hi:
+                tri[i] = t
+                ys[i] = y
+                x0[i] = lo
+                length[i] = hi - lo + 1
+                i += 1
+    return tri, ys, x0, length
+
+
+@njit(cache=True, inline="always")
+def _bilinear(img: np.ndarray, x: float, y: float) -> float:
+    """Bilinear sample of a 2-D float image, coordinates clamped to the image (replicate)."""
+    h, w = img.shape
+    if x < 0.0:
+        x = 0.0
+    elif x > w - 1:
+        x = w - 1.0
+    if y < 0.0:
+        y = 0.0
+    elif y > h - 1:
+        y = h - 1.0
+    x0 = int(x)
+    y0 = int(y)
+    x1 = min(x0 + 1, w - 1)
+    y1 = min(y0 + 1, h - 1)
+    fx = x - x0
+    fy = y - y0
+    top = img[y0, x0] + fx * (img[y0, x1] - img[y0, x0])
+    bottom = img[y1, x0] + fx * (img[y1, x1] - img[y1, x0])
+    return top + fy * (bottom - top)
+
+
+@njit(cache=True)
+def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
+    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``."""
+    pa = np.empty(bins)
+    pb = np.empty(bins)
+    for r in range(hist.shape[0]):
+        n = 0.0
+        pa[:] = 0.0
+        pb[:] = 0.0
+        h_ab = 0.0
+        for a in range(bins):
+            for b in range(bins):
+                c = float(hist[r, a * bins + b])
+                if c > 0.0:
+                    n += c
+                    pa[a] += c
+                    pb[b] += c
+                    h_ab -= c * np.log2(c)
+        if n == 0.0:
+            mi[r] = 0.0
+            nmi[r] = 0.0
+            continue
+        h_a = 0.0
+        h_b = 0.0
+        for a in range(bins):
+            if pa[a] > 0.0:
+                h_a -= pa[a] * np.log2(pa[a])
+            if pb[a] > 0.0:
+                h_b -= pb[a] * np.log2(pb[a])
+        # Entropies from counts: H = log2(n) - sum(c log2 c) / n.
+        log_n = np.log2(n)
+        h_ab = log_n + h_ab / n
+        h_a = log_n + h_a / n
+        h_b = log_n + h_b / n
+        value = h_a + h_b - h_ab
+        if value < 0.0:
+            value = 0.0
+        mi[r] = value
+        nmi[r] = value / h_ab if h_ab > 0.0 else 0.0
+
+
+@njit(cache=True)
+def sample_points(img, xs, ys, out):  # type: ignore[no-untyped-def]
+    """``out[i]`` = bilinear sample of the 2-D float image at ``(xs[i], ys[i])`` (replicate)."""
+    for i in range(xs.shape[0]):
+        out[i] = _bilinear(img, xs[i], ys[i])
+
+
+@njit(cache=True)
+def triangle_histograms(  # type: ignore[no-untyped-def]
+    ref_tris, mov_tris, ref_bins, ref_values, moving, width, height, bins, bin_scale, hist, moments
+):
+    """Accumulate joint histograms (and moments when ``moments`` has rows) of triangles.
+
+    ``ref_tris``/``mov_tris``: (T, 3, 2) vertices in pixels; ``ref_bins``/``ref_values``: flat
+    reference bins and grey levels; ``moving``: 2-D float grey levels in [0, 1]; a resampled
+    value ``v`` falls in bin ``floor(v * bin_scale)``. ``hist`` is ``(T, bins * bins)`` int64,
+    ``moments`` ``(T, 6)`` or ``(0, 6)`` float64. Resampling: bilinear, border replicated.
+    """
+    q = np.empty((3, 2), dtype=np.int64)
+    m = np.empty((2, 3))
+    with_moments = moments.shape[0] > 0
+    mh, mw = moving.shape
+    flat = moving.ravel()
+    xmax = mw - 1.0
+    ymax = mh - 1.0
+    for t in range(ref_tris.shape[0]):
+        if _load_triangle(ref_tris[t], q) == 0:
+            continue
+        _affine(ref_tris[t], mov_tris[t], m)
+        h_t = hist[t]
+        y0, y1 = _row_range(q, height)
+        for y in range(y0, y1 + 1):
+            lo, hi = row_span(q, y, width)
+            row = y * width
+            # The map is affine: step along the row instead of re-evaluating it.
+            mx = m[0, 0] * lo + m[0, 1] * y + m[0, 2]
+            my = m[1, 0] * lo + m[1, 1] * y + m[1, 2]
+            for x in range(lo, hi + 1):
+                sx = min(max(mx, 0.0), xmax)
+                sy = min(max(my, 0.0), ymax)
+                xi = int(sx)
+                yi = int(sy)
+                fx = sx - xi
+                fy = sy - yi
+                i00 = yi * mw + xi
+                i01 = i00 + 1 if xi < mw - 1 else i00
+                i10 = i00 + mw if yi < mh - 1 else i00
+                i11 = i10 + 1 if xi < mw - 1 else i10
+                top = flat[i00] + fx * (flat[i01] - flat[i00])
+                bottom = flat[i10] + fx * (flat[i11] - flat[i10])
+                v = top + fy * (bottom - top)
+                b = int(v * bin_scale)
+                if b >= bins:
+                    b = bins - 1
+                elif b < 0:
+                    b = 0
+                h_t[ref_bins[row + x] * bins + b] += 1
+                if with_moments:
+                    a = ref_values[row + x]
+                    moments[t, 0] += 1.0
+                    moments[t, 1] += a
+                    moments[t, 2] += v
+                    moments[t, 3] += a * a
+                    moments[t, 4] += v * v
+                    moments[t, 5] += a * v
+                mx += m[0, 0]
+                my += m[1, 0]
+
+
+@njit(cache=True)
+def warp(ref_tris, mov_tris, moving, out, full):  # type: ignore[no-untyped-def]
+    """Resample ``moving`` (H', W', C) into ``out`` (H, W, C + 1) through each triangle's map.
+
+    Colour bands are bilinear samples rounded to the nearest level; the last band of ``out`` is
+    ``full`` where the mapped point lies inside the moving image, else 0 (colour left at 0). A
+    4-band ``moving`` has its alpha resampled and multiplied in (min).
+    """
+    height, width = out.shape[0], out.shape[1]
+    mh, mw, nb = moving.shape
+    colour = 3 if nb == 4 else nb
+    q = np.empty((3, 2), dtype=np.int64)
+    maps = np.empty((2, 3))
+    for t in range(ref_tris.shape[0]):
+        if _load_triangle(ref_tris[t], q) == 0:
+            continue
+        _affine(ref_tris[t], mov_tris[t], maps)
+        y0, y1 = _row_range(q, height)
+        for y in range(y0, y1 + 1):
+            lo, hi = row_span(q, y, width)
+            for x in range(lo, hi + 1):
+                mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
+                my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
+                if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
+                    continue
+                xi = int(mx)
+                yi = int(my)
+                x1 = min(xi + 1, mw - 1)
+                y1b = min(yi + 1, mh - 1)
+                fx = mx - xi
+                fy = my - yi
+                for c in range(nb):
+                    top = moving[yi, xi, c] + fx * (float(moving[yi, x1, c]) - moving[yi, xi, c])
+                    bot = moving[y1b, xi, c] + fx * (float(moving[y1b, x1, c]) - moving[y1b, xi, c])
+                    val = top + fy * (bot - top) + 0.5
+                    if c < colour:
+                        out[y, x, c] = val
+                    else:
+                        out[y, x, colour] = min(val, full)
+                if nb != 4:
+                    out[y, x, colour] = full
