@@ -116,8 +116,9 @@ def test_morris_kanade_respects_max_iterations_and_progress(scene):
 
     mesh, _ = initial_mesh(scene.points_reference, scene.points_moving, 25)
     with pytest.raises(Stop):
-        morris_kanade_search(mesh, prepare_images(scene.reference, scene.moving, 16),
-                             progress=progress)
+        morris_kanade_search(
+            mesh, prepare_images(scene.reference, scene.moving, 16), progress=progress
+        )
 
 
 def test_nakatuji_max_iterations_and_cancel(scene):
@@ -146,14 +147,16 @@ def test_template_detects_the_crease_crossing_diagonal():
     mesh, _ = initial_mesh(rp, mp, 25)
     images = prepare_images(ref_img, mov_img, 16)
     crossing = [
-        e for e in mesh.internal_edges()
+        e
+        for e in mesh.internal_edges()
         if (mesh.reference[e[0], 0] - 100) * (mesh.reference[e[1], 0] - 100) < 0
         and mesh.can_swap(e)
     ]
     assert crossing
     for e in crossing:
         q = mesh.quad(e)
-        now, swapped = quad_inconsistency(images, mesh, [(q.i, q.j, q.k, q.l), (q.k, q.l, q.i, q.j)])
+        configurations = [(q.i, q.j, q.k, q.l), (q.k, q.l, q.i, q.j)]
+        now, swapped = quad_inconsistency(images, mesh, configurations)
         assert swapped < now
         assert swapped < 0.05
 
