@@ -22,6 +22,7 @@ from service.schemas import Options
 from service.settings import Settings
 from service.storage import LocalStorage
 from service.store import FINISHED, JobStore
+from service.worker import resolve_runner
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,7 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        resolve_runner(settings.runner)  # a misconfigured runner stops the start, loudly
         storage = LocalStorage(settings.data_dir)
         storage.prepare()
         store = JobStore.from_url(settings.resolved_database_url)

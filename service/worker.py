@@ -25,6 +25,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import cv2
 from pydantic import ValidationError
 
 from core.errors import InputError
@@ -363,7 +364,9 @@ def _settle_lost(job_id: str, context: WorkerContext) -> str:
 _PROCESS_CONTEXT: WorkerContext | None = None
 
 
-def init_process(settings: Settings, stop_event: Any = None) -> None:
+def init_process(
+    settings: Settings, stop_event: Any = None, log_level: int = logging.INFO
+) -> None:
     """Initializer of a worker process: build its context, follow the parent's lifetime.
 
     Ctrl-C in a terminal reaches the whole process group; the workers ignore it and let the
@@ -373,10 +376,10 @@ def init_process(settings: Settings, stop_event: Any = None) -> None:
     """
     global _PROCESS_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    import cv2
-
     cv2.setNumThreads(settings.worker_threads)  # processes, not threads, share the cores
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s %(message)s")
+    logging.basicConfig(
+        level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
