@@ -1,7 +1,8 @@
 """Dependencies of the routers: the service objects built by the application's lifespan.
 
-The routers receive the store, the storage, the queue, the settings and the metrics through
-FastAPI's dependency injection (``Annotated[..., Depends(...)]``), never as module globals.
+The routers receive them through FastAPI's dependency injection (``ServicesDep``), never as
+module globals, so that an application instance owns its store, storage, queue, settings and
+metrics, and tests can build one with other parts.
 """
 
 from __future__ import annotations
@@ -30,31 +31,8 @@ class Services:
 
 
 def get_services(request: Request) -> Services:
+    """The services of the application serving ``request``."""
     return request.app.state.services
 
 
-def get_settings(request: Request) -> Settings:
-    return get_services(request).settings
-
-
-def get_store(request: Request) -> JobStore:
-    return get_services(request).store
-
-
-def get_storage(request: Request) -> LocalStorage:
-    return get_services(request).storage
-
-
-def get_queue(request: Request) -> JobQueue:
-    return get_services(request).queue
-
-
-def get_metrics(request: Request) -> Metrics:
-    return get_services(request).metrics
-
-
-SettingsDep = Annotated[Settings, Depends(get_settings)]
-StoreDep = Annotated[JobStore, Depends(get_store)]
-StorageDep = Annotated[LocalStorage, Depends(get_storage)]
-QueueDep = Annotated[JobQueue, Depends(get_queue)]
-MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+ServicesDep = Annotated[Services, Depends(get_services)]

@@ -13,7 +13,7 @@ from typing import Annotated, Any
 from urllib.parse import urlencode
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from core.errors import InputError
 from core.io import load_points, read_image
 from core.options import RegistrationOptions
-from service.deps import Services, get_services
+from service.deps import Services, ServicesDep
 from service.problems import (
     Problem,
     from_input_error,
@@ -38,8 +38,6 @@ from service.store import IdempotencyConflict, Job, JobStatus
 from service.uploads import ReceivedForm, receive_form
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
-
-ServicesDep = Annotated[Services, Depends(get_services)]
 
 FORM_PARTS = ("reference", "moving", "points", "options")
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"

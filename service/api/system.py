@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import functools
 import logging
-from typing import Annotated, Any
+from typing import Any
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter
 from fastapi.responses import PlainTextResponse
 from pydantic import BaseModel
 
 from core.options import RegistrationOptions
-from service.deps import Services, get_services
+from service.deps import ServicesDep
 from service.metrics import CONTENT_TYPE
 from service.problems import Problem, problem_responses
 from service.schemas import Health, OptionInfo, Readiness
@@ -19,8 +19,6 @@ from service.schemas import Health, OptionInfo, Readiness
 log = logging.getLogger(__name__)
 
 router = APIRouter(tags=["system"])
-
-ServicesDep = Annotated[Services, Depends(get_services)]
 
 
 def describe_options(model: type[BaseModel] = RegistrationOptions) -> list[OptionInfo]:
