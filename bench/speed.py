@@ -21,6 +21,7 @@ import argparse
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -205,21 +206,39 @@ def scaling(sizes: list[float], points: list[int], base_mp: float, base_points: 
 
 
 def peak_memory(megapixels: float, n_points: int) -> dict:
-    """Section 3: max RSS of a fresh process running one whole registration."""
-    code = (
-        "import resource, json, sys; from bench.speed import _run_once; "
-        f"r = _run_once({megapixels}, {n_points}); "
-        "r['max_rss_mb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024; "
-        "print(json.dumps(r))"
-    )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[1],
-    )
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    """Section 3: max RSS of a fresh process that reads the pair from PNG files, registers it
+    and writes the three results (what ``pwlreg register`` does)."""
+    width = int(round(np.sqrt(megapixels * 1e6 * 4 / 3)))
+    height = int(round(width * 3 / 4))
+    ref, mov, rp, mp = folded_pair(width, height, n_points, seed=2)
+    with tempfile.TemporaryDirectory() as tmp:
+        cv2.imwrite(f"{tmp}/ref.png", ref)
+        cv2.imwrite(f"{tmp}/mov.png", mov)
+        Path(f"{tmp}/points.json").write_text(
+            json.dumps({"reference": rp.tolist(), "moving": mp.tolist()})
+        )
+        del ref, mov
+        code = (
+            "import json, resource, time\n"
+            "from core.io import load_points, read_image, write_outputs\n"
+            "from core.pipeline import register\n"
+            "t = time.perf_counter()\n"
+            f"ref = read_image('{tmp}/ref.png'); mov = read_image('{tmp}/mov.png')\n"
+            f"pts = load_points(open('{tmp}/points.json', 'rb').read())\n"
+            "r = register(ref, mov, pts, {'epipolar_filter': False})\n"
+            f"write_outputs(r, '{tmp}/out')\n"
+            "print(json.dumps({'total_s': time.perf_counter() - t, "
+            "'optimization_s': r.timings['optimization_s'], 'swaps': len(r.search.steps), "
+            "'max_rss_mb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))\n"
+        )
+        done = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=Path(__file__).resolve().parents[1],
+        )
+    return json.loads(done.stdout.strip().splitlines()[-1]) | {"size": f"{width}x{height}"}
 
 
 def _plot(rows: list[dict], path: Path) -> None:

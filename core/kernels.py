@@ -230,14 +230,27 @@ def sample_points(img, xs, ys, out):  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def triangle_histograms(  # type: ignore[no-untyped-def]
-    ref_tris, mov_tris, ref_bins, ref_values, moving, width, height, bins, bin_scale, hist, moments
+    ref_tris,
+    mov_tris,
+    ref_bins,
+    ref_values,
+    moving,
+    width,
+    height,
+    bins,
+    bin_scale,
+    ref_scale,
+    mov_scale,
+    hist,
+    moments,
 ):
     """Accumulate joint histograms (and moments when ``moments`` has rows) of triangles.
 
     ``ref_tris``/``mov_tris``: (T, 3, 2) vertices in pixels; ``ref_bins``/``ref_values``: flat
-    reference bins and grey levels; ``moving``: 2-D float grey levels in [0, 1]; a resampled
-    value ``v`` falls in bin ``floor(v * bin_scale)``. ``hist`` is ``(T, bins * bins)`` int64,
-    ``moments`` ``(T, 6)`` or ``(0, 6)`` float64. Resampling: bilinear, border replicated.
+    reference bins and grey levels; ``moving``: 2-D grey levels; a resampled level ``v`` falls in
+    bin ``floor(v * bin_scale)``. ``hist`` is ``(T, bins * bins)`` int64, ``moments`` ``(T, 6)``
+    or ``(0, 6)`` float64, of levels times ``ref_scale`` / ``mov_scale``. Resampling: bilinear,
+    border replicated.
     """
     q = np.empty((3, 2), dtype=np.int64)
     m = np.empty((2, 3))
@@ -269,8 +282,10 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
                 i01 = i00 + 1 if xi < mw - 1 else i00
                 i10 = i00 + mw if yi < mh - 1 else i00
                 i11 = i10 + 1 if xi < mw - 1 else i10
-                top = flat[i00] + fx * (flat[i01] - flat[i00])
-                bottom = flat[i10] + fx * (flat[i11] - flat[i10])
+                p00 = float(flat[i00])
+                p10 = float(flat[i10])
+                top = p00 + fx * (flat[i01] - p00)
+                bottom = p10 + fx * (flat[i11] - p10)
                 v = top + fy * (bottom - top)
                 b = int(v * bin_scale)
                 if b >= bins:
@@ -279,7 +294,8 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
                     b = 0
                 h_t[ref_bins[row + x] * bins + b] += 1
                 if with_moments:
-                    a = ref_values[row + x]
+                    a = ref_values[row + x] * ref_scale
+                    v *= mov_scale
                     moments[t, 0] += 1.0
                     moments[t, 1] += a
                     moments[t, 2] += v

@@ -210,6 +210,40 @@ class Mesh:
                 return "swap creates a patch reversal"
         return None
 
+    def swappable_edges(self) -> list[Edge]:
+        """Internal edges meeting every swap precondition, sorted (batched :meth:`can_swap`)."""
+        edges = self.internal_edges()
+        if not edges:
+            return []
+        quads = np.array(
+            [
+                (i, j, sum(self._tris[s0]) - i - j, sum(self._tris[s1]) - i - j)  # type: ignore[arg-type]
+                for (i, j), (s0, s1) in ((e, self._edges[e]) for e in edges)
+            ],
+            dtype=np.int64,
+        )
+        ok = np.array([(min(a, b), max(a, b)) not in self._edges for _, _, a, b in quads])
+        for pts in (self.ref_fixed, self.mov_fixed):
+            p = np.array(pts, dtype=np.int64)[quads]  # (E, 4, 2): i, j, k, l
+            o = {}
+            for name, (a, b, c) in {
+                "ijk": (0, 1, 2),
+                "ijl": (0, 1, 3),
+                "kli": (2, 3, 0),
+                "klj": (2, 3, 1),
+            }.items():
+                pa, pb, pc = p[:, a], p[:, b], p[:, c]
+                o[name] = np.sign(
+                    (pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1])
+                    - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0])
+                )
+            ok &= (o["ijk"] * o["ijl"] < 0) & (o["kli"] * o["klj"] < 0)
+            if pts is self.ref_fixed:
+                ref_new = (o["kli"], o["klj"])
+            else:
+                ok &= (o["kli"] == ref_new[0]) & (o["klj"] == ref_new[1])
+        return [e for e, good in zip(edges, ok.tolist(), strict=True) if good]
+
     def can_swap(self, e: Edge) -> bool:
         """Whether ``e`` meets every swap precondition."""
         return self.swap_blocker(e) is None

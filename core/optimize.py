@@ -84,15 +84,17 @@ class TriangleCache:
         Also keep the six moments needed by NCC and SSD.
     """
 
-    def __init__(self, images: ScoringImages, mesh: Mesh, with_moments: bool = False) -> None:
+    def __init__(
+        self, images: ScoringImages, mesh: Mesh, with_moments: bool = False, capacity: int = 64
+    ) -> None:
         self.images = images
         self.reference = mesh.reference
         self.moving = mesh.moving
         self.with_moments = with_moments
         self.bins = images.bins
         self._rows: dict[Triple, int] = {}
-        self._hist = np.zeros((0, self.bins * self.bins), dtype=np.int64)
-        self._moments = np.zeros((0, 6), dtype=np.float64)
+        self._hist = np.zeros((capacity, self.bins * self.bins), dtype=np.int64)
+        self._moments = np.zeros((capacity if with_moments else 0, 6), dtype=np.float64)
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -109,9 +111,14 @@ class TriangleCache:
         start = len(self._rows)
         need = start + len(missing)
         if need > len(self._hist):
-            grow = max(need, 2 * len(self._hist), 64)
-            self._hist = np.resize(self._hist, (grow, self._hist.shape[1]))
-            self._moments = np.resize(self._moments, (grow, 6))
+            grow = max(need, 2 * len(self._hist))
+            grown = np.zeros((grow, self._hist.shape[1]), dtype=np.int64)
+            grown[:start] = self._hist[:start]
+            self._hist = grown
+            if self.with_moments:
+                grown_m = np.zeros((grow, 6))
+                grown_m[:start] = self._moments[:start]
+                self._moments = grown_m
         self._hist[start:need] = hist
         if moments is not None:
             self._moments[start:need] = moments
@@ -208,10 +215,12 @@ def greedy_search(
         Called with a fraction in [0, 1]; it may raise to abort the search.
     """
     t0 = time.perf_counter()
-    cache = TriangleCache(images, mesh, with_moments=(cost == "ncc"))
-    scorer = QuadScorer(cache, cost)
     current = [_triple(mesh.triangle(s)) for s in mesh.slots()]
-    candidates = [e for e in mesh.internal_edges() if mesh.can_swap(e)]
+    candidates = mesh.swappable_edges()
+    # Room for every triangle of the first pass and a few swaps' worth of new ones.
+    capacity = len(current) + 2 * len(candidates) + 256
+    cache = TriangleCache(images, mesh, with_moments=(cost == "ncc"), capacity=capacity)
+    scorer = QuadScorer(cache, cost)
     cache.ensure(current)
     deltas = scorer.deltas(mesh, candidates)
     global_hist = cache.hist(current)

@@ -32,14 +32,16 @@ class ScoringImages:
         ``(height, width)`` of the reference image.
     bins : int
         Grey-level bins per image (M).
-    reference_bins : ndarray of int32, shape (H * W,)
+    reference_bins : ndarray of uint8 or uint16, shape (H * W,)
         Bin of every reference pixel, row-major.
-    reference_values : ndarray of float32, shape (H * W,)
-        Reference grey level of every pixel, scaled to [0, 1].
-    moving : ndarray of float32, shape (H', W')
-        Moving grey levels scaled to [0, 1].
+    reference_values : ndarray of uint8 or uint16, shape (H * W,)
+        Reference luminance of every pixel, row-major (a view, not a copy, where possible).
+    moving : ndarray of uint8 or uint16, shape (H', W')
+        Moving luminance.
+    reference_scale, moving_scale : float
+        ``1 / G`` for each image: multiply a level by it to get a value in [0, 1] (moments).
     moving_bin_scale : float
-        A resampled moving value ``v`` (in [0, 1]) falls in bin ``floor(v * moving_bin_scale)``.
+        A resampled moving level ``v`` falls in bin ``floor(v * moving_bin_scale)``.
     """
 
     shape: tuple[int, int]
@@ -47,27 +49,34 @@ class ScoringImages:
     reference_bins: np.ndarray
     reference_values: np.ndarray
     moving: np.ndarray
+    reference_scale: float
+    moving_scale: float
     moving_bin_scale: float
 
 
 def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> ScoringImages:
-    """Luminance of both images, binned (reference) or scaled to float (moving).
+    """Luminance of both images, and the bin of every reference pixel.
 
     A grey level ``g`` of an image whose dtype holds ``0..G`` falls in bin
-    ``floor(g * M / (G + 1))``; resampled moving levels are binned the same way.
+    ``floor(g * M / (G + 1))``; resampled moving levels are binned the same way. Nothing larger
+    than one byte or two per pixel is allocated (32-megapixel pairs stay well under 1 GB).
     """
-    ref = to_gray(reference)
-    mov = to_gray(moving)
+    ref = np.ascontiguousarray(to_gray(reference))
+    mov = np.ascontiguousarray(to_gray(moving))
     g_ref = max_value(ref)
     g_mov = max_value(mov)
-    ref_bins = (ref.astype(np.int64) * bins // (g_ref + 1)).astype(np.int32)
+    lut = (np.arange(g_ref + 1, dtype=np.int64) * bins // (g_ref + 1)).astype(
+        np.uint8 if bins <= 256 else np.uint16
+    )
     return ScoringImages(
         shape=(ref.shape[0], ref.shape[1]),
         bins=bins,
-        reference_bins=ref_bins.ravel(),
-        reference_values=(ref.astype(np.float32) / g_ref).ravel(),
-        moving=np.ascontiguousarray(mov.astype(np.float32) / g_mov),
-        moving_bin_scale=bins * g_mov / (g_mov + 1.0),
+        reference_bins=lut[ref].ravel(),
+        reference_values=ref.ravel(),
+        moving=mov,
+        reference_scale=1.0 / g_ref,
+        moving_scale=1.0 / g_mov,
+        moving_bin_scale=bins / (g_mov + 1.0),
     )
 
 
@@ -111,6 +120,8 @@ def triangle_statistics(
             images.shape[0],
             m,
             images.moving_bin_scale,
+            images.reference_scale,
+            images.moving_scale,
             hist,
             moments,
         )

@@ -90,3 +90,10 @@ def test_reversed_slots_detects_flipped_triangle():
     mov = np.array([[0, 0], [0, 10], [10, 0]], float)
     assert Mesh(ref, mov, [[0, 1, 2]]).reversed_slots() == [0]
     assert Mesh(ref, ref, [[0, 1, 2]]).reversed_slots() == []
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31))
+def test_batched_swappable_edges_agree_with_can_swap(seed):
+    mesh = _random_mesh(seed, n=40, jitter=6.0)
+    assert mesh.swappable_edges() == [e for e in mesh.internal_edges() if mesh.can_swap(e)]
