@@ -7,6 +7,7 @@ import io
 import json
 import re
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime
 
 import numpy as np
@@ -210,3 +211,27 @@ def test_health_readiness_and_metrics(server: Server, pair: Pair) -> None:
         inf = re.search(r'^pwlreg_job_duration_seconds_bucket{status="successful",le="\+Inf"} '
                         r"(\d+)$", body, re.M)
         assert inf and inf.group(1) == count.group(1)
+
+
+def test_concurrent_requests_with_one_idempotency_key_make_one_job(
+    server: Server, pair: Pair
+) -> None:
+    key = f"race-{uuid.uuid4()}"
+
+    def post(_: int) -> tuple[int, str]:
+        with server.client() as client:
+            response = submit(client, pair, headers={"Idempotency-Key": key})
+            return response.status_code, response.json()["id"]
+
+    with ThreadPoolExecutor(max_workers=6) as pool:
+        answers = list(pool.map(post, range(6)))
+    assert {status for status, _ in answers} == {201}
+    assert len({job_id for _, job_id in answers}) == 1
+    with server.client() as client:
+        listed = client.get("/v1/jobs", params={"limit": 10}).json()["jobs"]
+    assert sum(j["id"] == answers[0][1] for j in listed) == 1  # newest first: it is on top
+    # The losers of the race left no files behind.
+    assert not any((server.data_dir / "uploads").iterdir())
+    with server.client() as client:
+        for job_dir in (server.data_dir / "jobs").iterdir():
+            assert client.get(f"/v1/jobs/{job_dir.name}").status_code == 200, job_dir
