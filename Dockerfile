@@ -46,9 +46,12 @@ RUN groupadd --system --gid 10001 pwlreg \
 
 COPY --from=build /opt/venv /opt/venv
 
+# numba compiles core's kernels on first use and caches them; the installed package is
+# read-only for the service user, so the cache goes to a writable directory.
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
+    NUMBA_CACHE_DIR=/tmp/numba-cache \
     PWLREG_DATA_DIR=/data
 
 USER pwlreg
