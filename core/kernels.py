@@ -128,19 +128,15 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
     """Runs ``(triangle, y, x0, length)`` of pixels owned by each triangle (T, 3, 2)."""
     n_tri = tris.shape[0]
     q = np.empty((3, 2), dtype=np.int64)
-    count = 0
+    rows = 0  # an upper bound on the number of runs: every row of every bounding box
     for t in range(n_tri):
-        if _load_triangle(tris[t], q) == 0:
-            continue
+        _load_triangle(tris[t], q)
         y0, y1 = _row_range(q, height)
-        for y in range(y0, y1 + 1):
-            lo, hi = row_span(q, y, width)
-            if lo <= hi:
-                count += 1
-    tri = np.empty(count, dtype=np.intp)
-    ys = np.empty(count, dtype=np.intp)
-    x0 = np.empty(count, dtype=np.intp)
-    length = np.empty(count, dtype=np.intp)
+        rows += max(y1 - y0 + 1, 0)
+    tri = np.empty(rows, dtype=np.intp)
+    ys = np.empty(rows, dtype=np.intp)
+    x0 = np.empty(rows, dtype=np.intp)
+    length = np.empty(rows, dtype=np.intp)
     i = 0
     for t in range(n_tri):
         if _load_triangle(tris[t], q) == 0:
@@ -154,7 +150,7 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
                 x0[i] = lo
                 length[i] = hi - lo + 1
                 i += 1
-    return tri, ys, x0, length
+    return tri[:i], ys[:i], x0[:i], length[:i]
 
 
 @njit(cache=True, inline="always")

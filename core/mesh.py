@@ -185,6 +185,21 @@ class Mesh:
         sign = orientation(m[:, 0], m[:, 1], m[:, 2])
         return [s for (s, _), g in zip(live, sign, strict=True) if g <= 0]
 
+    @staticmethod
+    def strictly_convex(q: Quad, fixed: list[tuple[int, int]]) -> bool:
+        """Whether the quad's diagonals cross properly with vertices ``fixed`` (exact test)."""
+        pi, pj, pk, pl = fixed[q.i], fixed[q.j], fixed[q.k], fixed[q.l]
+        return (
+            orient_fixed(pi, pj, pk) * orient_fixed(pi, pj, pl) < 0
+            and orient_fixed(pk, pl, pi) * orient_fixed(pk, pl, pj) < 0
+        )
+
+    def flipped(self, tri: tuple[int, int, int]) -> bool:
+        """Whether the vertex triple turns differently in the two images (a patch reversal)."""
+        a, b, c = tri
+        r, m = self.ref_fixed, self.mov_fixed
+        return orient_fixed(r[a], r[b], r[c]) != orient_fixed(m[a], m[b], m[c])
+
     def swap_blocker(self, e: Edge) -> str | None:
         """Why edge ``e`` cannot be swapped, or ``None`` if it can.
 
@@ -197,17 +212,12 @@ class Mesh:
         q = self.quad(e)
         if self.has_edge((q.k, q.l)):
             return "new edge exists"
-        for pts in (self.ref_fixed, self.mov_fixed):
-            pi, pj, pk, pl = pts[q.i], pts[q.j], pts[q.k], pts[q.l]
-            if orient_fixed(pi, pj, pk) * orient_fixed(pi, pj, pl) >= 0:
-                return "quad not strictly convex"
-            if orient_fixed(pk, pl, pi) * orient_fixed(pk, pl, pj) >= 0:
-                return "quad not strictly convex"
-        for a, b, c in q.swapped_triangles():
-            r = orient_fixed(self.ref_fixed[a], self.ref_fixed[b], self.ref_fixed[c])
-            m = orient_fixed(self.mov_fixed[a], self.mov_fixed[b], self.mov_fixed[c])
-            if r != m:
-                return "swap creates a patch reversal"
+        if not (
+            self.strictly_convex(q, self.ref_fixed) and self.strictly_convex(q, self.mov_fixed)
+        ):
+            return "quad not strictly convex"
+        if any(self.flipped(t) for t in q.swapped_triangles()):
+            return "swap creates a patch reversal"
         return None
 
     def swappable_edges(self) -> list[Edge]:

@@ -8,7 +8,7 @@ import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
 from core.errors import InputError, NotEnoughPointsError
-from core.mesh import Mesh, edge_key, orient_fixed
+from core.mesh import Edge, Mesh, edge_key
 from core.raster import quantize, triangle_areas
 
 
@@ -88,7 +88,13 @@ def repair_patch_reversals(mesh: Mesh, max_actions: int | None = None) -> tuple[
     """
     budget = max_actions if max_actions is not None else 4 * mesh.n_triangles + 16
     actions: list[dict] = []
-    rq, mq = mesh.ref_fixed, mesh.mov_fixed
+
+    def remove(slot: int, reason: str) -> None:
+        actions.append(
+            {"action": "remove", "triangle": list(mesh.triangle(slot)), "reason": reason}
+        )
+        mesh.remove_triangle(slot)
+
     while budget > 0:
         reversed_slots = mesh.reversed_slots()
         if not reversed_slots:
@@ -98,51 +104,24 @@ def repair_patch_reversals(mesh: Mesh, max_actions: int | None = None) -> tuple[
         a, b, c = mesh.triangle(slot)
         sides = [edge_key(a, b), edge_key(b, c), edge_key(c, a)]
         if any(not mesh.is_internal(e) for e in sides):
-            mesh.remove_triangle(slot)
-            actions.append(
-                {
-                    "action": "remove",
-                    "triangle": [a, b, c],
-                    "reason": "patch reversal on the boundary",
-                }
-            )
+            remove(slot, "patch reversal on the boundary")
             continue
-        best: tuple[int, tuple[int, int]] | None = None
+        best: tuple[int, Edge] | None = None
         for e in sides:
             q = mesh.quad(e)
-            if mesh.has_edge((q.k, q.l)):
+            # The swap must keep the reference mesh a valid triangulation.
+            if mesh.has_edge((q.k, q.l)) or not mesh.strictly_convex(q, mesh.ref_fixed):
                 continue
-            pi, pj, pk, pl = rq[q.i], rq[q.j], rq[q.k], rq[q.l]
-            if orient_fixed(pi, pj, pk) * orient_fixed(pi, pj, pl) >= 0:
-                continue
-            if orient_fixed(pk, pl, pi) * orient_fixed(pk, pl, pj) >= 0:
-                continue
-            before = sum(_moving_sign(mesh, s) <= 0 for s in q.slots)
-            after = 0
-            for t in q.swapped_triangles():
-                r = orient_fixed(rq[t[0]], rq[t[1]], rq[t[2]])
-                m = orient_fixed(mq[t[0]], mq[t[1]], mq[t[2]])
-                after += r != m
+            before = sum(mesh.flipped(mesh.triangle(s)) for s in q.slots)
+            after = sum(mesh.flipped(t) for t in q.swapped_triangles())
             if after < before and (best is None or after < best[0]):
                 best = (after, e)
         if best is None:
-            mesh.remove_triangle(slot)
-            actions.append(
-                {
-                    "action": "remove",
-                    "triangle": [a, b, c],
-                    "reason": "no swap removes the reversal",
-                }
-            )
+            remove(slot, "no swap removes the reversal")
             continue
         added = mesh.swap(best[1], check=False)
         actions.append({"action": "swap", "removed": list(best[1]), "added": list(added)})
     return actions, len(mesh.reversed_slots())
-
-
-def _moving_sign(mesh: Mesh, slot: int) -> int:
-    a, b, c = mesh.triangle(slot)
-    return orient_fixed(mesh.mov_fixed[a], mesh.mov_fixed[b], mesh.mov_fixed[c])
 
 
 def initial_mesh(
