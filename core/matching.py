@@ -96,6 +96,8 @@ class ConjugatePoints:
         The estimated epipolar geometry; None when the filter is off.
     residuals : np.ndarray
         (N,) epipolar residual of each kept pair, pixels (NaN when the filter is off).
+    notes : tuple of str
+        What the client should know, e.g. that the filter was skipped and why.
     """
 
     reference: np.ndarray
@@ -105,6 +107,7 @@ class ConjugatePoints:
     rejected: dict[str, int]
     epipolar: EpipolarModel | None
     residuals: np.ndarray
+    notes: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.reference)
@@ -120,6 +123,7 @@ class ConjugatePoints:
             "reference": [[float(x), float(y)] for x, y in self.reference],
             "moving": [[float(x), float(y)] for x, y in self.moving],
             "residuals_px": [None if math.isnan(r) else float(r) for r in self.residuals],
+            "notes": list(self.notes),
         }
 
 
@@ -785,7 +789,16 @@ def _client(
         raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "validation of the client points")
     model: EpipolarModel | None = None
     residuals = np.full(len(ref), np.nan)
-    if options.epipolar_filter:
+    notes: tuple[str, ...] = ()
+    needed = MIN_PAIRS[options.epipolar_model]
+    if options.epipolar_filter and len(ref) < needed:
+        # A hand-picked handful of points is a normal request: register it, and say the filter
+        # could not check it rather than refusing the job.
+        notes = (
+            f"epipolar filter skipped: {len(ref)} client pairs, the {options.epipolar_model} "
+            f"model needs at least {needed} to reject outliers robustly",
+        )
+    elif options.epipolar_filter:
         model, inl, res = _epipolar(ref, mov, options, "validation of the client points")
         rejected["epipolar"] = int(np.count_nonzero(~inl))
         ref, mov, residuals = ref[inl], mov[inl], res[inl]
@@ -793,7 +806,7 @@ def _client(
         if len(ref) < MIN_MESH_PAIRS:
             raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "the epipolar filter")
     counts["kept"] = len(ref)
-    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals)
+    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes)
 
 
 def find_conjugate_points(
