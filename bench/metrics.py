@@ -9,6 +9,9 @@ Three families of measures, all pure functions of numpy arrays:
   (:func:`mesh_correctness`, :func:`edge_compatibility`).
 * **Global mutual information** (bits) of the reference and registered images inside a mask
   (:func:`global_mi`), the paper's expression (8), for reporting.
+* **Disparity correctness** (:func:`disparity_correctness`): a proxy of mesh correctness for
+  rectified stereo pairs with a dense disparity but no plane labels (Middlebury): an edge lies on
+  one plane only if the disparity is linear along it.
 
 Conventions: pixel coordinates have x to the right, y down, (0, 0) at the centre of the top-left
 pixel; a pixel ``(x, y)`` is the array element ``[y, x]``. Vertices are ``(N, 2)`` arrays of
@@ -29,6 +32,8 @@ from core.warp import piecewise_map
 
 __all__ = [
     "EdgeCompatibility",
+    "disparity_correctness",
+    "disparity_edge_compatibility",
     "edge_compatibility",
     "endpoint_error",
     "endpoint_error_map",
@@ -377,6 +382,149 @@ def mesh_correctness(
         "boundary_edges": n_bnd,
         "compatible_boundary": ok_bnd,
         "boundary_correctness": ok_bnd / n_bnd if n_bnd else float("nan"),
+    }
+
+
+def _edge_samples(
+    verts: np.ndarray, edges: np.ndarray, margin: float, step: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points along each edge as in :func:`edge_compatibility`.
+
+    Returns ``(xy, t, edge_of, counts)``: sample positions (pixels), their parameter in [0, 1]
+    along the edge, the edge of each sample and the number of samples per edge.
+    """
+    p, q = verts[edges[:, 0]], verts[edges[:, 1]]
+    length = np.hypot(*(q - p).T)
+    m = np.minimum(margin, 0.25 * length)
+    span = length - 2 * m
+    counts = np.maximum(np.ceil(span / step).astype(np.int64) + 1, 1)
+    edge_of = np.repeat(np.arange(len(edges)), counts)
+    start = np.cumsum(counts) - counts
+    k = np.arange(counts.sum()) - np.repeat(start, counts)
+    denom = np.maximum(counts - 1, 1)
+    s = m[edge_of] + span[edge_of] * np.where(counts[edge_of] > 1, k / denom[edge_of], 0.5)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(length[edge_of] > 0, s / length[edge_of], 0.5)
+    xy = p[edge_of] + t[:, None] * (q - p)[edge_of]
+    return xy, t, edge_of, counts
+
+
+def disparity_edge_compatibility(
+    reference_vertices: np.ndarray,
+    vertex_disparity: np.ndarray,
+    edges: np.ndarray,
+    disparity: np.ndarray,
+    tolerance: float = 1.0,
+    margin: float = 2.0,
+    step: float = 0.5,
+    agreement: float = 0.98,
+    min_known: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Decide from a dense disparity whether each edge lies on one scene plane.
+
+    In a rectified stereo pair the disparity of a scene plane is an affine function of the
+    reference pixel, hence linear along any segment on it. An edge is compatible when, at
+    ``agreement`` of its samples with a known disparity (nearest pixel), the true disparity is
+    within ``tolerance`` pixels of the linear interpolation of its two vertices' disparities.
+    This is a necessary condition of 3-D compatibility; curved surfaces pass it when the edge is
+    short or flat enough (the tolerance), and an edge along the intersection of two planes
+    passes it (it lies on both).
+
+    Parameters
+    ----------
+    reference_vertices : ndarray, shape (N, 2)
+        Vertices in the reference image (pixels).
+    vertex_disparity : ndarray, shape (N,)
+        Disparity (pixels) of each vertex as the mesh has it: ``x_reference - x_moving``.
+    edges : ndarray of int, shape (E, 2)
+    disparity : ndarray, shape (H, W)
+        True reference disparity in pixels, NaN where unknown.
+    tolerance : float
+        Largest deviation from linearity (pixels).
+    margin, step : float
+        Sampling, as in :func:`edge_compatibility` (pixels).
+    agreement : float
+        Minimum share of known samples within the tolerance.
+    min_known : float
+        Edges with a smaller share of samples of known disparity are undetermined.
+
+    Returns
+    -------
+    compatible : ndarray of bool, shape (E,)
+    determined : ndarray of bool, shape (E,)
+        False for edges with too few samples of known disparity (their ``compatible`` is
+        False and should be ignored).
+    """
+    verts = np.asarray(reference_vertices, dtype=np.float64).reshape(-1, 2)
+    vd = np.asarray(vertex_disparity, dtype=np.float64).reshape(-1)
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    disp = np.asarray(disparity, dtype=np.float64)
+    if len(edges) == 0:
+        z = np.zeros(0, dtype=bool)
+        return z, z
+    height, width = disp.shape
+    xy, t, edge_of, counts = _edge_samples(verts, edges, margin, step)
+    col = np.clip(np.rint(xy[:, 0]).astype(np.int64), 0, width - 1)
+    row = np.clip(np.rint(xy[:, 1]).astype(np.int64), 0, height - 1)
+    d = disp[row, col]
+    expected = (1 - t) * vd[edges[edge_of, 0]] + t * vd[edges[edge_of, 1]]
+    known = np.isfinite(d)
+    good = known & (np.abs(np.where(known, d, 0.0) - expected) <= tolerance)
+    start = np.cumsum(counts) - counts
+    n_known = np.add.reduceat(known.astype(np.int64), start)
+    n_good = np.add.reduceat(good.astype(np.int64), start)
+    determined = n_known >= min_known * counts
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(n_known > 0, n_good / np.maximum(n_known, 1), 0.0)
+    compatible = determined & (share >= agreement - 1e-12)
+    return compatible, determined
+
+
+def disparity_correctness(
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    disparity: np.ndarray,
+    tolerance: float = 1.0,
+) -> dict[str, float]:
+    """Mesh correctness of a rectified stereo registration, from its dense disparity.
+
+    The share of internal edges that pass :func:`disparity_edge_compatibility`, among the
+    internal edges whose disparity is known along at least half of their length. A proxy of
+    :func:`mesh_correctness` for pairs without plane labels (Middlebury).
+
+    Parameters
+    ----------
+    reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        Mesh vertices (pixels); a vertex's disparity is ``x_reference - x_moving``.
+    triangles : ndarray of int, shape (T, 3)
+    disparity : ndarray, shape (H, W)
+        True reference disparity (pixels), NaN where unknown.
+    tolerance : float
+        Largest deviation from linearity along an edge (pixels).
+
+    Returns
+    -------
+    dict
+        ``correctness`` (compatible / determined internal edges, NaN if none),
+        ``internal_edges``, ``determined_internal``, ``compatible_internal``,
+        ``incompatible_internal``.
+    """
+    ref = np.asarray(reference_vertices, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(moving_vertices, dtype=np.float64).reshape(-1, 2)
+    edges, count = mesh_edges(triangles)
+    internal = edges[count == 2]
+    ok, determined = disparity_edge_compatibility(
+        ref, ref[:, 0] - mov[:, 0], internal, disparity, tolerance=tolerance
+    )
+    n_det = int(determined.sum())
+    n_ok = int(ok.sum())
+    return {
+        "correctness": n_ok / n_det if n_det else float("nan"),
+        "internal_edges": len(internal),
+        "determined_internal": n_det,
+        "compatible_internal": n_ok,
+        "incompatible_internal": n_det - n_ok,
     }
 
 
