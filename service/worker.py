@@ -383,6 +383,10 @@ def init_process(
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
+        if settings.runner == "core.pipeline:register":
+            from core.kernels import warm_up
+
+            warm_up()  # compile or load the numba kernels now, not in the first job
     except Exception:  # noqa: BLE001 (reported when a job runs)
         log.exception("cannot import the runner %s", settings.runner)
     _watch_parent()
