@@ -340,10 +340,23 @@ def estimate_global_prior(
         return None
     src = _from_level(corners[ok], sa)
     dst = _from_level(tracked[ok], sb)
+    return _robust_homography(src, dst, 2.0 / sb, 2000, seed, min_inliers)
+
+
+def _robust_homography(
+    src: np.ndarray,
+    dst: np.ndarray,
+    threshold: float,
+    max_iterations: int,
+    seed: int,
+    min_inliers: int,
+) -> np.ndarray | None:
+    """USAC (MSAC score, inner local optimisation) homography ``dst ~ H src``, normalised so
+    that ``H[2, 2] == 1``; None with fewer than ``min_inliers`` inliers."""
     params = cv2.UsacParams()
-    params.threshold = 2.0 / sb
+    params.threshold = float(threshold)
     params.confidence = 0.999
-    params.maxIterations = 2000
+    params.maxIterations = int(max_iterations)
     params.randomGeneratorState = int(seed)
     params.sampler = cv2.SAMPLING_UNIFORM
     params.score = cv2.SCORE_METHOD_MSAC
@@ -633,23 +646,7 @@ def _homography_from_matches(
     """Robust homography reference -> moving of a match set (a prior for guided tracking)."""
     if len(matches.reference) < min_inliers:
         return None
-    params = cv2.UsacParams()
-    params.threshold = 3.0
-    params.confidence = 0.999
-    params.maxIterations = 5000
-    params.randomGeneratorState = int(seed)
-    params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MSAC
-    params.loMethod = cv2.LOCAL_OPTIM_INNER_LO
-    params.loIterations = 10
-    params.loSampleSize = 14
-    params.final_polisher = cv2.LSQ_POLISHER
-    params.final_polisher_iterations = 3
-    params.isParallel = False
-    H, mask = cv2.findHomography(matches.reference, matches.moving, params)
-    if H is None or mask is None or int(mask.sum()) < min_inliers:
-        return None
-    return H / H[2, 2]
+    return _robust_homography(matches.reference, matches.moving, 3.0, 5000, seed, min_inliers)
 
 
 Filtered = tuple[Matches, "EpipolarModel | None", np.ndarray]

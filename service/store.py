@@ -203,6 +203,19 @@ class JobStore:
             connection.execute(text("SELECT 1"))
         return True
 
+    def _update_owned(self, job_id: str, owner: str, values: dict[str, Any]) -> bool:
+        """Apply ``values`` to a job still running under ``owner``'s lease; False otherwise."""
+        statement = (
+            update(JobRow)
+            .where(
+                JobRow.id == job_id,
+                JobRow.status == JobStatus.running.value,
+                JobRow.lease_owner == owner,
+            )
+            .values(**values)
+        )
+        return self._update(statement) == 1
+
     def _update(self, statement: Any) -> int:
         with self._sessions.begin() as session:
             return session.execute(statement).rowcount
@@ -386,18 +399,7 @@ class JobStore:
             values["stage"] = stage
         if progress is not None:
             values["progress"] = progress
-        return (
-            self._update(
-                update(JobRow)
-                .where(
-                    JobRow.id == job_id,
-                    JobRow.status == JobStatus.running.value,
-                    JobRow.lease_owner == owner,
-                )
-                .values(**values)
-            )
-            == 1
-        )
+        return self._update_owned(job_id, owner, values)
 
     def finish(
         self,
@@ -421,43 +423,22 @@ class JobStore:
         }
         if status == JobStatus.successful:
             values["progress"] = 100.0
-        return (
-            self._update(
-                update(JobRow)
-                .where(
-                    JobRow.id == job_id,
-                    JobRow.status == JobStatus.running.value,
-                    JobRow.lease_owner == owner,
-                )
-                .values(**values)
-            )
-            == 1
-        )
+        return self._update_owned(job_id, owner, values)
 
     def release(self, job_id: str, owner: str, message: str) -> bool:
         """Give a running job back to the queue without counting the attempt (the worker is
         shutting down, not failing)."""
-        return (
-            self._update(
-                update(JobRow)
-                .where(
-                    JobRow.id == job_id,
-                    JobRow.status == JobStatus.running.value,
-                    JobRow.lease_owner == owner,
-                )
-                .values(
-                    status=JobStatus.accepted.value,
-                    attempts=JobRow.attempts - 1,
-                    lease_owner=None,
-                    lease_expires=None,
-                    stage=None,
-                    progress=0.0,
-                    message=message,
-                    updated=utcnow(),
-                )
-            )
-            == 1
-        )
+        values = {
+            "status": JobStatus.accepted.value,
+            "attempts": JobRow.attempts - 1,
+            "lease_owner": None,
+            "lease_expires": None,
+            "stage": None,
+            "progress": 0.0,
+            "message": message,
+            "updated": utcnow(),
+        }
+        return self._update_owned(job_id, owner, values)
 
     # --- transitions by the API and the maintenance pass ------------------------------------
 
