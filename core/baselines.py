@@ -349,9 +349,7 @@ class TemplateScorer:
     """
 
     def __init__(self, images: ScoringImages, mesh: Mesh, size: int = TEMPLATE_SIZE) -> None:
-        self.reference = np.asarray(images.reference_values, dtype=np.float32).reshape(
-            images.shape
-        )
+        self.reference = np.asarray(images.reference_values, dtype=np.float32).reshape(images.shape)
         self.moving = np.asarray(images.moving, dtype=np.float32)
         self.vertices = (mesh.reference, mesh.moving)
         self.first, self.weights = _template_grid(size)

@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 
 # Header parsing only; the pixel limit is ours.
 Image.MAX_IMAGE_PIXELS = None
+_DECODER_MAX_PIXELS = 2**30
 
 
 def read_image(
@@ -65,13 +66,18 @@ def read_image(
         raise UnsupportedMediaError(
             f"{field} is not a supported image (PNG, JPEG, TIFF, PPM/PGM or BMP)", field
         ) from exc
-    if max_pixels is not None and width * height > max_pixels:
+    # OpenCV refuses to decode more than 2**30 pixels whatever the caller allows.
+    max_pixels = min(max_pixels or _DECODER_MAX_PIXELS, _DECODER_MAX_PIXELS)
+    if width * height > max_pixels:
         raise ImageTooLargeError(
             f"{field} has {width}x{height} = {width * height} pixels, more than the limit of "
             f"{max_pixels}",
             field,
         )
-    image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    try:
+        image = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise UnsupportedMediaError(f"{field} could not be decoded: {exc.err}", field) from exc
     if image is None:
         raise UnsupportedMediaError(f"{field} could not be decoded (corrupt or truncated?)", field)
     if image.ndim == 3 and image.shape[2] == 1:
@@ -89,7 +95,7 @@ def load_points(data: bytes | str, field: str = "points") -> tuple[np.ndarray, n
     reference, moving : ndarray of float64, shape (N, 2)
     """
     text = data.decode("utf-8-sig", errors="replace") if isinstance(data, bytes) else data
-    text = text.strip()
+    text = text.lstrip("\ufeff").strip()
     if not text:
         raise InputError(f"{field} is empty", field)
     if text[0] in "{[":
@@ -97,6 +103,8 @@ def load_points(data: bytes | str, field: str = "points") -> tuple[np.ndarray, n
             doc = json.loads(text)
         except json.JSONDecodeError as exc:
             raise InputError(f"{field} is not valid JSON: {exc}", field) from exc
+        except RecursionError as exc:
+            raise InputError(f"{field} JSON is nested too deeply", field) from exc
         if not isinstance(doc, dict) or "reference" not in doc or "moving" not in doc:
             raise InputError(
                 f'{field} JSON must be an object with "reference" and "moving" lists of [x, y]',
@@ -134,9 +142,15 @@ def load_points(data: bytes | str, field: str = "points") -> tuple[np.ndarray, n
 
 
 def _as_points(value: object, field: str) -> np.ndarray:
+    if not isinstance(value, list) or not all(
+        isinstance(p, list)
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in p)
+        for p in value
+    ):
+        raise InputError(f"{field} must be a list of [x, y] numbers", field)
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"{field} must be a list of [x, y] numbers", field) from exc
     if arr.size == 0:
         return arr.reshape(0, 2)

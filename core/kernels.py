@@ -176,45 +176,50 @@ def _bilinear(img: np.ndarray, x: float, y: float) -> float:
     return top + fy * (bottom - top)
 
 
+@njit(cache=True, inline="always")
+def _entropy(counts: np.ndarray, n: float) -> float:
+    """Entropy in bits of counts summing to ``n``: ``-sum(p log2 p)``, exactly 0 for one cell."""
+    h = 0.0
+    for c in counts:
+        if c > 0.0:
+            p = c / n
+            h -= p * np.log2(p)
+    return h
+
+
 @njit(cache=True)
 def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
-    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``."""
+    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``.
+
+    MI is clamped to [0, min(H(A), H(B))]; a histogram with no or a single occupied cell has
+    ``H(A, B) = 0`` and gets MI = NMI = 0 (no information, not a perfect match).
+    """
     pa = np.empty(bins)
     pb = np.empty(bins)
+    row = np.empty(bins * bins)
     for r in range(hist.shape[0]):
-        n = 0.0
         pa[:] = 0.0
         pb[:] = 0.0
-        h_ab = 0.0
+        n = 0.0
         for a in range(bins):
             for b in range(bins):
                 c = float(hist[r, a * bins + b])
-                if c > 0.0:
-                    n += c
-                    pa[a] += c
-                    pb[b] += c
-                    h_ab -= c * np.log2(c)
+                row[a * bins + b] = c
+                n += c
+                pa[a] += c
+                pb[b] += c
+        mi[r] = 0.0
+        nmi[r] = 0.0
         if n == 0.0:
-            mi[r] = 0.0
-            nmi[r] = 0.0
             continue
-        h_a = 0.0
-        h_b = 0.0
-        for a in range(bins):
-            if pa[a] > 0.0:
-                h_a -= pa[a] * np.log2(pa[a])
-            if pb[a] > 0.0:
-                h_b -= pb[a] * np.log2(pb[a])
-        # Entropies from counts: H = log2(n) - sum(c log2 c) / n.
-        log_n = np.log2(n)
-        h_ab = log_n + h_ab / n
-        h_a = log_n + h_a / n
-        h_b = log_n + h_b / n
-        value = h_a + h_b - h_ab
-        if value < 0.0:
-            value = 0.0
+        h_ab = _entropy(row, n)
+        if h_ab <= 1e-12:
+            continue
+        h_a = _entropy(pa, n)
+        h_b = _entropy(pb, n)
+        value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
         mi[r] = value
-        nmi[r] = value / h_ab if h_ab > 0.0 else 0.0
+        nmi[r] = value / h_ab
 
 
 @njit(cache=True)
@@ -234,6 +239,7 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
     width,
     height,
     bins,
+    bin_offset,
     bin_scale,
     ref_scale,
     mov_scale,
@@ -244,9 +250,9 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
 
     ``ref_tris``/``mov_tris``: (T, 3, 2) vertices in pixels; ``ref_bins``/``ref_values``: flat
     reference bins and grey levels; ``moving``: 2-D grey levels; a resampled level ``v`` falls in
-    bin ``floor(v * bin_scale)``. ``hist`` is ``(T, bins * bins)`` int64, ``moments`` ``(T, 6)``
-    or ``(0, 6)`` float64, of levels times ``ref_scale`` / ``mov_scale``. Resampling: bilinear,
-    border replicated.
+    bin ``floor((v - bin_offset) * bin_scale)``, clipped to ``[0, bins - 1]``. ``hist`` is
+    ``(T, bins * bins)`` int64, ``moments`` ``(T, 6)`` or ``(0, 6)`` float64, of levels times
+    ``ref_scale`` / ``mov_scale``. Resampling: bilinear, border replicated.
     """
     q = np.empty((3, 2), dtype=np.int64)
     m = np.empty((2, 3))
@@ -283,7 +289,7 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
                 top = p00 + fx * (flat[i01] - p00)
                 bottom = p10 + fx * (flat[i11] - p10)
                 v = top + fy * (bottom - top)
-                b = int(v * bin_scale)
+                b = int((v - bin_offset) * bin_scale)
                 if b >= bins:
                     b = bins - 1
                 elif b < 0:

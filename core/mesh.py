@@ -15,9 +15,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.raster import SUBPIXEL, orientation, quantize
+from core.raster import fixed_point, orientation, quantize
 
 Edge = tuple[int, int]
+
+MAX_COORDINATE = 2.0**22
+"""Largest vertex coordinate magnitude (pixels) for which every predicate is exact in int64."""
 
 
 def orient_fixed(p: tuple[int, int], q: tuple[int, int], r: tuple[int, int]) -> int:
@@ -70,16 +73,17 @@ class Mesh:
     """
 
     def __init__(self, reference: np.ndarray, moving: np.ndarray, triangles: np.ndarray) -> None:
+        for pts in (reference, moving):
+            # Fixed-point predicates are exact in int64 only up to this magnitude.
+            arr = np.asarray(pts, dtype=np.float64)
+            if not np.all(np.isfinite(arr)) or np.abs(arr).max(initial=0.0) > MAX_COORDINATE:
+                raise ValueError(f"vertex coordinates must be finite, at most {MAX_COORDINATE} px")
         self.reference = quantize(reference).reshape(-1, 2)
         self.moving = quantize(moving).reshape(-1, 2)
         if self.reference.shape != self.moving.shape:
             raise ValueError("reference and moving vertices must have the same shape")
-        self.ref_fixed = [
-            tuple(v) for v in np.rint(self.reference * SUBPIXEL).astype(np.int64).tolist()
-        ]
-        self.mov_fixed = [
-            tuple(v) for v in np.rint(self.moving * SUBPIXEL).astype(np.int64).tolist()
-        ]
+        self.ref_fixed = [tuple(v) for v in fixed_point(self.reference).tolist()]
+        self.mov_fixed = [tuple(v) for v in fixed_point(self.moving).tolist()]
         tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if len(tris) and (tris.min() < 0 or tris.max() >= len(self.reference)):
             raise ValueError("triangle vertex index out of range")

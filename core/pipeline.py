@@ -90,6 +90,8 @@ def parse_options(options: RegistrationOptions | Mapping[str, Any] | None) -> Re
         return RegistrationOptions()
     if isinstance(options, RegistrationOptions):
         return options
+    if not isinstance(options, Mapping):
+        raise InputError("options must be a JSON object (a mapping of names to values)", "options")
     try:
         return RegistrationOptions.model_validate(dict(options))
     except ValidationError as exc:
@@ -153,13 +155,16 @@ def register(
     report("matching", 0.0)
     pts = None
     if points is not None:
-        ref_pts = np.asarray(points[0], dtype=np.float64).reshape(-1, 2)
-        mov_pts = np.asarray(points[1], dtype=np.float64).reshape(-1, 2)
-        if len(ref_pts) != len(mov_pts):
+        try:
+            pts = (np.asarray(points[0], dtype=np.float64), np.asarray(points[1], dtype=np.float64))
+        except (TypeError, ValueError, IndexError) as exc:
+            raise InputError("points must be two (N, 2) arrays of numbers", "points") from exc
+        if pts[0].ndim != 2 or pts[0].shape[1:] != (2,) or pts[1].shape != pts[0].shape:
             raise InputError(
-                f"{len(ref_pts)} reference points but {len(mov_pts)} moving points", "points"
+                f"points must be two (N, 2) arrays of the same length, got shapes "
+                f"{pts[0].shape} and {pts[1].shape}",
+                "points",
             )
-        pts = (ref_pts, mov_pts)
     conjugate = find_conjugate_points(reference, moving, opts, pts)
     timings["matching_s"] = time.perf_counter() - t_start
     report("matching", 1.0)

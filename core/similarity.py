@@ -40,8 +40,9 @@ class ScoringImages:
         Moving luminance.
     reference_scale, moving_scale : float
         ``1 / G`` for each image: multiply a level by it to get a value in [0, 1] (moments).
-    moving_bin_scale : float
-        A resampled moving level ``v`` falls in bin ``floor(v * moving_bin_scale)``.
+    moving_bin_offset, moving_bin_scale : float
+        A resampled moving level ``v`` falls in bin
+        ``floor((v - moving_bin_offset) * moving_bin_scale)``, clipped to ``[0, M - 1]``.
     """
 
     shape: tuple[int, int]
@@ -51,21 +52,40 @@ class ScoringImages:
     moving: np.ndarray
     reference_scale: float
     moving_scale: float
+    moving_bin_offset: float
     moving_bin_scale: float
+
+
+def level_range(gray: np.ndarray, tail: float = 5e-4) -> tuple[int, int]:
+    """Grey levels ``(lo, hi)`` spanned by an image, ignoring a ``tail`` fraction at each end.
+
+    The bins of the joint histogram cover this range rather than the whole dtype: 12-bit data
+    stored in 16 bits, or a dark 8-bit photo, would otherwise fall into one or two bins. A
+    full-range 8-bit image (with at least 0.05 % of its pixels at each end) keeps the paper's
+    bins over 0..255.
+    """
+    counts = np.bincount(gray.ravel(), minlength=max_value(gray) + 1)
+    cdf = np.cumsum(counts)
+    total = cdf[-1]
+    lo = int(np.searchsorted(cdf, tail * total, side="right"))
+    hi = int(np.searchsorted(cdf, (1.0 - tail) * total, side="left"))
+    return lo, max(hi, lo)
 
 
 def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> ScoringImages:
     """Luminance of both images, and the bin of every reference pixel.
 
-    A grey level ``g`` of an image whose dtype holds ``0..G`` falls in bin
-    ``floor(g * M / (G + 1))``; resampled moving levels are binned the same way. Nothing larger
-    than one byte or two per pixel is allocated (32-megapixel pairs stay well under 1 GB).
+    With ``(lo, hi)`` the :func:`level_range` of an image, its grey level ``g`` falls in bin
+    ``floor((g - lo) * M / (hi - lo + 1))`` clipped to ``[0, M - 1]``; resampled moving levels
+    are binned the same way with the moving image's range. Nothing larger than one or two bytes
+    per pixel is allocated (32-megapixel pairs stay well under 1 GB).
     """
     ref = np.ascontiguousarray(to_gray(reference))
     mov = np.ascontiguousarray(to_gray(moving))
-    g_ref = max_value(ref)
-    g_mov = max_value(mov)
-    lut = (np.arange(g_ref + 1, dtype=np.int64) * bins // (g_ref + 1)).astype(
+    r_lo, r_hi = level_range(ref)
+    m_lo, m_hi = level_range(mov)
+    levels = np.arange(max_value(ref) + 1, dtype=np.int64)
+    lut = np.clip((levels - r_lo) * bins // (r_hi - r_lo + 1), 0, bins - 1).astype(
         np.uint8 if bins <= 256 else np.uint16
     )
     return ScoringImages(
@@ -74,9 +94,10 @@ def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> Scor
         reference_bins=lut[ref].ravel(),
         reference_values=ref.ravel(),
         moving=mov,
-        reference_scale=1.0 / g_ref,
-        moving_scale=1.0 / g_mov,
-        moving_bin_scale=bins / (g_mov + 1.0),
+        reference_scale=1.0 / max_value(ref),
+        moving_scale=1.0 / max_value(mov),
+        moving_bin_offset=float(m_lo),
+        moving_bin_scale=bins / (m_hi - m_lo + 1.0),
     )
 
 
@@ -119,6 +140,7 @@ def triangle_statistics(
             images.shape[1],
             images.shape[0],
             m,
+            images.moving_bin_offset,
             images.moving_bin_scale,
             images.reference_scale,
             images.moving_scale,

@@ -29,6 +29,10 @@ def test_points_json_and_csv_agree():
         ("a,b\n1,2\n", "header"),
         ("x,y,x_moving,y_moving\n1,2,3\n", "four numbers"),
         ('{"reference": [[1, NaN]], "moving": [[1, 2]]}', "non-finite"),
+        ('{"reference": [["1", "2"]], "moving": [[1, 2]]}', "numbers"),
+        ('{"reference": [[true, false]], "moving": [[1, 2]]}', "numbers"),
+        ('{"reference": [[1' + "0" * 400 + ', 2]], "moving": [[5, 6]]}', "numbers"),
+        ('{"reference": ' + "[" * 100000 + "]" * 100000 + ', "moving": []}', "nested"),
     ],
 )
 def test_bad_points_are_clear_errors(text, match):
@@ -52,6 +56,11 @@ def test_read_image_round_trip_and_limits():
         read_image(truncated)
 
 
+def test_bom_in_text_points():
+    ref, mov = load_points("\ufeffx,y,x_moving,y_moving\n1,2,3,4\n")
+    assert ref.tolist() == [[1, 2]] and mov.tolist() == [[3, 4]]
+
+
 def test_decompression_bomb_refused_before_decoding():
     # A PNG header claiming 100000 x 100000 pixels with almost no data.
     big = np.zeros((1, 1), np.uint8)
@@ -60,6 +69,9 @@ def test_decompression_bomb_refused_before_decoding():
     data[29:33] = zlib.crc32(bytes(data[12:29])).to_bytes(4, "big")  # keep the IHDR valid
     with pytest.raises(ImageTooLargeError):
         read_image(bytes(data), max_pixels=50_000_000)
+    # Without a limit of its own the decoder's limit (2**30 pixels) still applies, cleanly.
+    with pytest.raises(ImageTooLargeError):
+        read_image(bytes(data))
 
 
 def test_grey_alpha_png_encodes_as_bgra():

@@ -77,6 +77,12 @@ def test_invalid_options_and_points_are_input_errors():
     assert err.value.field == "options.no_such_option"
     with pytest.raises(InputError):
         register(ref, mov, (rp, mp[:-1]), {"epipolar_filter": False})
+    with pytest.raises(InputError, match=r"\(N, 2\)"):  # (x, y, weight) rows are not points
+        register(ref, mov, (np.c_[rp, rp[:, :1]], np.c_[mp, mp[:, :1]]), {"epipolar_filter": False})
+    for bad in ("abc", 5, [("bins", 3)]):
+        with pytest.raises(InputError) as err:
+            register(ref, mov, (rp, mp), bad)
+        assert err.value.field == "options"
     with pytest.raises(InputError):
         register(ref.astype(np.float32), mov, (rp, mp))
 

@@ -7,7 +7,14 @@ from scipy.spatial import Delaunay
 from core.mesh import Mesh
 from core.optimize import TriangleCache, quad_triples
 from core.raster import quantize
-from core.similarity import mutual_information, ncc, prepare_images, ssd, triangle_statistics
+from core.similarity import (
+    level_range,
+    mutual_information,
+    ncc,
+    prepare_images,
+    ssd,
+    triangle_statistics,
+)
 from core.warp import piecewise_map
 from tests.core.synthetic import texture
 
@@ -35,6 +42,23 @@ def test_mi_known_values():
     assert mi == pytest.approx(0.0, abs=1e-12) and nmi == pytest.approx(0.0, abs=1e-12)
     mi, nmi = mutual_information(np.zeros(16), m)
     assert mi == 0 and nmi == 0
+    # One occupied cell carries no information (not a perfect match), whatever its count.
+    for count in range(1, 200):
+        one = np.zeros(16)
+        one[5] = count
+        assert mutual_information(one, m) == (0.0, 0.0)
+
+
+def test_level_range_bins_twelve_bit_data_in_sixteen_bits():
+    rng = np.random.default_rng(0)
+    twelve = rng.integers(0, 4096, size=(50, 60)).astype(np.uint16)
+    assert level_range(twelve)[1] < 4096
+    images = prepare_images(twelve, twelve, 16)
+    assert len(np.unique(images.reference_bins)) == 16
+    pts = np.array([[0.0, 0.0], [59.0, 0.0], [0.0, 49.0], [59.0, 49.0]])
+    h, _ = triangle_statistics(images, pts[[[0, 1, 2], [1, 3, 2]]], pts[[[0, 1, 2], [1, 3, 2]]])
+    mi, nmi = mutual_information(h.sum(0), 16)
+    assert mi > 3.5 and nmi > 0.95  # identical images: MI close to H = 4 bits
 
 
 def test_ncc_and_ssd_from_moments():
@@ -58,16 +82,25 @@ def test_global_histogram_equals_sum_of_triangles_and_dense_path():
     warped[inside] = map_coordinates(
         mov.astype(np.float64), [map_y[inside], map_x[inside]], order=1, mode="nearest"
     )
-    a = (ref.astype(int) * 16 // 256)[inside]
-    b = (warped[inside] * 16 / 256).astype(int)
+    r_lo, r_hi = level_range(ref)
+    m_lo, m_hi = level_range(mov)
+
+    def ref_bin(sel):
+        return np.clip((ref.astype(int)[sel] - r_lo) * 16 // (r_hi - r_lo + 1), 0, 15)
+
+    def mov_bin(sel):
+        return np.clip(np.floor((warped[sel] - m_lo) * 16 / (m_hi - m_lo + 1)), 0, 15).astype(int)
+
+    a = ref_bin(inside)
+    b = mov_bin(inside)
     dense = np.bincount(a * 16 + b, minlength=256)
     np.testing.assert_array_equal(hist.sum(axis=0), dense)
     assert mom[:, 0].sum() == inside.sum()
     # Per triangle too.
     for t in (0, 5, len(tris) - 1):
         sel = label == t
-        a = (ref.astype(int) * 16 // 256)[sel]
-        b = (warped[sel] * 16 / 256).astype(int)
+        a = ref_bin(sel)
+        b = mov_bin(sel)
         np.testing.assert_array_equal(hist[t], np.bincount(a * 16 + b, minlength=256))
 
 
