@@ -29,7 +29,7 @@ def to_fixed(value: float) -> int:
 def _load_triangle(tri: np.ndarray, q: np.ndarray) -> int:
     """Fixed-point copy of a float ``(3, 2)`` triangle into ``q``, positively oriented.
 
-    Returns 0 for a degenerate triangle, 1 otherwise.
+    Returns 0 for a degenerate triangle, -1 if the vertices were reordered, 1 otherwise.
     """
     for v in range(3):
         q[v, 0] = to_fixed(tri[v, 0])
@@ -71,14 +71,17 @@ def affine_maps(src_tris, dst_tris, out):  # type: ignore[no-untyped-def]
 
 @njit(cache=True, inline="always")
 def _orient_triangle(q: np.ndarray) -> int:
-    """Sign of the fixed-point triangle's area; flips ``q`` in place to make it positive."""
+    """Make the fixed-point triangle ``q`` positively oriented in place.
+
+    Returns 0 if it is degenerate, -1 if its vertices 1 and 2 were swapped, 1 otherwise.
+    """
     cross = (q[1, 0] - q[0, 0]) * (q[2, 1] - q[0, 1]) - (q[1, 1] - q[0, 1]) * (q[2, 0] - q[0, 0])
     if cross < 0:
         for c in range(2):
             tmp = q[1, c]
             q[1, c] = q[2, c]
             q[2, c] = tmp
-        return 1
+        return -1
     return 1 if cross > 0 else 0
 
 
@@ -92,12 +95,13 @@ def _row_range(q: np.ndarray, height: int) -> tuple[int, int]:
 
 
 @njit(cache=True, inline="always")
-def row_span(q: np.ndarray, y: int, width: int) -> tuple[int, int]:
+def row_span(q: np.ndarray, y: int, width: int, closed: int = 0) -> tuple[int, int]:
     """First and last column owned on row ``y`` by the positively oriented triangle ``q``.
 
     Inside means every edge function ``E`` is positive; ``E == 0`` counts as inside when the
-    pixel centre displaced by an infinitesimal ``(d, d**2)`` enters the triangle. Empty rows give
-    ``hi < lo``.
+    pixel centre displaced by an infinitesimal ``(d, d**2)`` enters the triangle, or when bit
+    ``e`` of ``closed`` is set for edge ``e`` (from vertex ``e`` to ``e + 1``): the rendering
+    pass closes the mesh's outer edges this way. Empty rows give ``hi < lo``.
     """
     py = y * SUBPIXEL
     lo = 0
@@ -115,10 +119,13 @@ def row_span(q: np.ndarray, y: int, width: int) -> tuple[int, int]:
             if lower > lo:
                 lo = lower
         elif dy > 0:
-            upper = -((-k) // (dy * SUBPIXEL)) - 1
+            if (closed >> e) & 1:
+                upper = k // (dy * SUBPIXEL)
+            else:
+                upper = -((-k) // (dy * SUBPIXEL)) - 1
             if upper < hi:
                 hi = upper
-        elif not (k > 0 or (k == 0 and dx > 0)):
+        elif not (k > 0 or (k == 0 and (dx > 0 or (closed >> e) & 1))):
             return 0, -1
     return lo, hi
 
@@ -308,47 +315,71 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
                 my += m[1, 0]
 
 
+@njit(cache=True, inline="always")
+def _render(moving, maps, x, y, out, colour, full) -> None:  # type: ignore[no-untyped-def]
+    """Write pixel ``(x, y)`` of ``out``: bilinear sample of ``moving`` through ``maps``."""
+    mh, mw, nb = moving.shape
+    mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
+    my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
+    if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
+        return
+    xi = int(mx)
+    yi = int(my)
+    x1 = min(xi + 1, mw - 1)
+    y1 = min(yi + 1, mh - 1)
+    fx = mx - xi
+    fy = my - yi
+    for c in range(nb):
+        top = moving[yi, xi, c] + fx * (float(moving[yi, x1, c]) - moving[yi, xi, c])
+        bottom = moving[y1, xi, c] + fx * (float(moving[y1, x1, c]) - moving[y1, xi, c])
+        val = top + fy * (bottom - top) + 0.5
+        if c < colour:
+            out[y, x, c] = val
+        else:
+            out[y, x, colour] = min(val, full)
+    if nb != 4:
+        out[y, x, colour] = full
+
+
 @njit(cache=True)
-def warp(ref_tris, mov_tris, moving, out, full):  # type: ignore[no-untyped-def]
+def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-untyped-def]
     """Resample ``moving`` (H', W', C) into ``out`` (H, W, C + 1) through each triangle's map.
 
     Colour bands are bilinear samples rounded to the nearest level; the last band of ``out`` is
     ``full`` where the mapped point lies inside the moving image, else 0 (colour left at 0). A
     4-band ``moving`` has its alpha resampled and multiplied in (min).
+
+    ``closed[t]`` flags, bit ``e`` for the edge from vertex ``e`` to ``e + 1`` of ``ref_tris[t]``,
+    the mesh's outer edges: a second pass gives the pixel centres lying exactly on them (which
+    the fill rule leaves to a neighbour that does not exist on the bottom and right sides) to
+    their only triangle.
     """
     height, width = out.shape[0], out.shape[1]
-    mh, mw, nb = moving.shape
-    colour = 3 if nb == 4 else nb
+    colour = 3 if moving.shape[2] == 4 else moving.shape[2]
+    owned = np.zeros((height, width), dtype=np.uint8)
     q = np.empty((3, 2), dtype=np.int64)
     maps = np.empty((2, 3))
-    for t in range(ref_tris.shape[0]):
-        if _load_triangle(ref_tris[t], q) == 0:
-            continue
-        _affine(ref_tris[t], mov_tris[t], maps)
-        y0, y1 = _row_range(q, height)
-        for y in range(y0, y1 + 1):
-            lo, hi = row_span(q, y, width)
-            for x in range(lo, hi + 1):
-                mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
-                my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
-                if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
+    for second in range(2):
+        for t in range(ref_tris.shape[0]):
+            mask = 0
+            if second:
+                if closed[t] == 0:
                     continue
-                xi = int(mx)
-                yi = int(my)
-                x1 = min(xi + 1, mw - 1)
-                y1b = min(yi + 1, mh - 1)
-                fx = mx - xi
-                fy = my - yi
-                for c in range(nb):
-                    top = moving[yi, xi, c] + fx * (float(moving[yi, x1, c]) - moving[yi, xi, c])
-                    bot = moving[y1b, xi, c] + fx * (float(moving[y1b, x1, c]) - moving[y1b, xi, c])
-                    val = top + fy * (bot - top) + 0.5
-                    if c < colour:
-                        out[y, x, c] = val
-                    else:
-                        out[y, x, colour] = min(val, full)
-                if nb != 4:
-                    out[y, x, colour] = full
+                mask = closed[t]
+            flip = _load_triangle(ref_tris[t], q)
+            if flip == 0:
+                continue
+            if flip < 0:  # vertices 1 and 2 swapped: edges 0 and 2 trade places
+                mask = (mask & 2) | ((mask & 1) << 2) | ((mask >> 2) & 1)
+            _affine(ref_tris[t], mov_tris[t], maps)
+            y0, y1 = _row_range(q, height)
+            for y in range(y0, y1 + 1):
+                lo, hi = row_span(q, y, width, mask)
+                for x in range(lo, hi + 1):
+                    if owned[y, x]:
+                        continue
+                    owned[y, x] = 1
+                    _render(moving, maps, x, y, out, colour, full)
 
 
 def warm_up() -> None:

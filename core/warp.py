@@ -108,5 +108,18 @@ def warp_image(
             np.ascontiguousarray(src),
             out,
             np.iinfo(moving.dtype).max,
+            outer_edge_flags(tris),
         )
     return out
+
+
+def outer_edge_flags(triangles: np.ndarray) -> np.ndarray:
+    """Per triangle, bit ``e`` set when its edge from vertex ``e`` to ``e + 1`` is on the mesh's
+    outline (no other triangle shares it)."""
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    a = tris
+    b = np.roll(tris, -1, axis=1)
+    keys = np.minimum(a, b) * (tris.max(initial=0) + 1) + np.maximum(a, b)  # (T, 3)
+    uniq, counts = np.unique(keys, return_counts=True)
+    single = counts[np.searchsorted(uniq, keys)] == 1
+    return (single * np.array([1, 2, 4])).sum(axis=1).astype(np.int64)

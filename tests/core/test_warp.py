@@ -59,3 +59,26 @@ def test_piecewise_map_reproduces_affine_inside_triangle():
     np.testing.assert_allclose(mx[ys, xs], A[0, 0] * xs + A[0, 1] * ys + A[0, 2], atol=1e-9)
     np.testing.assert_allclose(my[ys, xs], A[1, 0] * xs + A[1, 1] * ys + A[1, 2], atol=1e-9)
     assert np.isnan(mx[label < 0]).all()
+
+
+def test_outer_edges_are_closed_so_corner_points_cover_the_whole_image():
+    shape = (40, 60)
+    img = texture(shape, 1)
+    pts = np.array([[0, 0], [59, 0], [0, 39], [59, 39], [30, 20], [10, 39], [59, 12]], float)
+    out = warp_image(img, pts, pts, Delaunay(pts).simplices, shape)
+    assert (out[..., 1] == 255).all()
+    np.testing.assert_array_equal(out[..., 0], img)
+
+
+def test_rendered_region_is_the_closed_mesh_outline():
+    from scipy.spatial import ConvexHull
+
+    rng = np.random.default_rng(5)
+    shape = (50, 70)
+    pts = np.unique(np.round(rng.uniform(-5, [75, 55], size=(25, 2))), axis=0)
+    img = texture(shape, 2)
+    out = warp_image(img, pts, pts, Delaunay(pts).simplices, shape)
+    ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]]
+    grid = np.c_[xs.ravel(), ys.ravel(), np.ones(xs.size)]
+    inside_or_on = (grid @ ConvexHull(pts).equations.T <= 1e-9).all(axis=1).reshape(shape)
+    np.testing.assert_array_equal(out[..., 1] > 0, inside_or_on)
