@@ -315,32 +315,6 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
                 my += m[1, 0]
 
 
-@njit(cache=True, inline="always")
-def _render(moving, maps, x, y, out, colour, full) -> None:  # type: ignore[no-untyped-def]
-    """Write pixel ``(x, y)`` of ``out``: bilinear sample of ``moving`` through ``maps``."""
-    mh, mw, nb = moving.shape
-    mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
-    my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
-    if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
-        return
-    xi = int(mx)
-    yi = int(my)
-    x1 = min(xi + 1, mw - 1)
-    y1 = min(yi + 1, mh - 1)
-    fx = mx - xi
-    fy = my - yi
-    for c in range(nb):
-        top = moving[yi, xi, c] + fx * (float(moving[yi, x1, c]) - moving[yi, xi, c])
-        bottom = moving[y1, xi, c] + fx * (float(moving[y1, x1, c]) - moving[y1, xi, c])
-        val = top + fy * (bottom - top) + 0.5
-        if c < colour:
-            out[y, x, c] = val
-        else:
-            out[y, x, colour] = min(val, full)
-    if nb != 4:
-        out[y, x, colour] = full
-
-
 @njit(cache=True)
 def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-untyped-def]
     """Resample ``moving`` (H', W', C) into ``out`` (H, W, C + 1) through each triangle's map.
@@ -355,7 +329,8 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
     their only triangle.
     """
     height, width = out.shape[0], out.shape[1]
-    colour = 3 if moving.shape[2] == 4 else moving.shape[2]
+    mh, mw, nb = moving.shape
+    colour = 3 if nb == 4 else nb
     owned = np.zeros((height, width), dtype=np.uint8)
     q = np.empty((3, 2), dtype=np.int64)
     maps = np.empty((2, 3))
@@ -379,7 +354,28 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
                     if owned[y, x]:
                         continue
                     owned[y, x] = 1
-                    _render(moving, maps, x, y, out, colour, full)
+                    mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
+                    my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
+                    if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
+                        continue
+                    xi = int(mx)
+                    yi = int(my)
+                    xj = min(xi + 1, mw - 1)
+                    yj = min(yi + 1, mh - 1)
+                    fx = mx - xi
+                    fy = my - yi
+                    for c in range(nb):
+                        p00 = float(moving[yi, xi, c])
+                        p10 = float(moving[yj, xi, c])
+                        top = p00 + fx * (moving[yi, xj, c] - p00)
+                        bottom = p10 + fx * (moving[yj, xj, c] - p10)
+                        val = top + fy * (bottom - top) + 0.5
+                        if c < colour:
+                            out[y, x, c] = val
+                        else:
+                            out[y, x, colour] = min(val, full)
+                    if nb != 4:
+                        out[y, x, colour] = full
 
 
 def warm_up() -> None:
