@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     report["side_by_side"] = s
     print(f"== {s['pair']}")
     print(
-        f"optimization (whole greedy search): {s['optimization_s'] * 1e3:8.1f} ms "
+        f"optimization (prepare + greedy search):{s['optimization_s'] * 1e3:8.1f} ms "
         f"({s['swaps']} swaps, {s['evaluations']} gains scored)"
     )
     print(
