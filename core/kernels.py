@@ -164,29 +164,6 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
 
 
 @njit(cache=True, inline="always")
-def _bilinear(img: np.ndarray, x: float, y: float) -> float:
-    """Bilinear sample of a 2-D float image, coordinates clamped to the image (replicate)."""
-    h, w = img.shape
-    if x < 0.0:
-        x = 0.0
-    elif x > w - 1:
-        x = w - 1.0
-    if y < 0.0:
-        y = 0.0
-    elif y > h - 1:
-        y = h - 1.0
-    x0 = int(x)
-    y0 = int(y)
-    x1 = min(x0 + 1, w - 1)
-    y1 = min(y0 + 1, h - 1)
-    fx = x - x0
-    fy = y - y0
-    top = img[y0, x0] + fx * (img[y0, x1] - img[y0, x0])
-    bottom = img[y1, x0] + fx * (img[y1, x1] - img[y1, x0])
-    return top + fy * (bottom - top)
-
-
-@njit(cache=True, inline="always")
 def _entropy(counts: np.ndarray, n: float) -> float:
     """Entropy in bits of counts summing to ``n``: ``-sum(p log2 p)``, exactly 0 for one cell."""
     h = 0.0
@@ -230,13 +207,6 @@ def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
         value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
         mi[r] = value
         nmi[r] = value / h_ab
-
-
-@njit(cache=True)
-def sample_points(img, xs, ys, out):  # type: ignore[no-untyped-def]
-    """``out[i]`` = bilinear sample of the 2-D float image at ``(xs[i], ys[i])`` (replicate)."""
-    for i in range(xs.shape[0]):
-        out[i] = _bilinear(img, xs[i], ys[i])
 
 
 @njit(cache=True)

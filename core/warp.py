@@ -12,18 +12,6 @@ from core import kernels
 from core.raster import affine_maps, expand, rasterize
 
 
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a 2-D image at points ``(x, y)`` (pixels), float64.
-
-    Positions outside the image take the value of the nearest border pixel.
-    """
-    xs = np.ascontiguousarray(x, dtype=np.float64).ravel()
-    ys = np.ascontiguousarray(y, dtype=np.float64).ravel()
-    out = np.empty(len(xs), dtype=np.float64)
-    kernels.sample_points(np.ascontiguousarray(image, dtype=np.float32), xs, ys, out)
-    return out.reshape(np.shape(x))
-
-
 def piecewise_map(
     reference_vertices: np.ndarray,
     moving_vertices: np.ndarray,
