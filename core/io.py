@@ -113,7 +113,10 @@ def load_points(data: bytes | str, field: str = "points") -> tuple[np.ndarray, n
         ref = _as_points(doc["reference"], f"{field}.reference")
         mov = _as_points(doc["moving"], f"{field}.moving")
     else:
-        rows = list(csv.reader(io.StringIO(text)))
+        try:
+            rows = list(csv.reader(io.StringIO(text, newline="")))
+        except csv.Error as exc:
+            raise InputError(f"{field} is neither JSON nor readable CSV: {exc}", field) from exc
         header = [h.strip().lower() for h in rows[0]]
         wanted = ["x", "y", "x_moving", "y_moving"]
         if any(h not in header for h in wanted):

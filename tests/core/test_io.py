@@ -4,6 +4,8 @@ import zlib
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
 from core.io import encode_png, load_points, read_image
@@ -27,6 +29,7 @@ def test_points_json_and_csv_agree():
         ('{"reference": [[1, 2]], "moving": [[1, 2], [3, 4]]}', "1 reference points but 2"),
         ('{"reference": [[1, 2, 3]], "moving": [[1, 2, 3]]}', r"\[x, y\] pairs"),
         ("a,b\n1,2\n", "header"),
+        ("\x00\r\x00", "CSV"),
         ("x,y,x_moving,y_moving\n1,2,3\n", "four numbers"),
         ('{"reference": [[1, NaN]], "moving": [[1, 2]]}', "non-finite"),
         ('{"reference": [["1", "2"]], "moving": [[1, 2]]}', "numbers"),
@@ -78,3 +81,13 @@ def test_grey_alpha_png_encodes_as_bgra():
     ga = np.dstack([np.full((4, 5), 100, np.uint8), np.full((4, 5), 255, np.uint8)])
     back = read_image(encode_png(ga))
     assert back.shape == (4, 5, 4) and back[0, 0].tolist() == [100, 100, 100, 255]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.one_of(st.binary(max_size=300), st.text(max_size=300)))
+def test_any_points_file_parses_or_is_an_input_error(data):
+    try:
+        ref, mov = load_points(data)
+    except InputError:
+        return
+    assert ref.shape == mov.shape and ref.ndim == 2 and ref.shape[1] == 2
