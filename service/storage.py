@@ -3,7 +3,7 @@
 Layout under the data directory::
 
     uploads/<random>/            a request being received (moved away or removed when done)
-    jobs/<id>/inputs/            reference.npy, moving.npy (decoded), points (as uploaded)
+    jobs/<id>/inputs/            reference, moving, points (as uploaded)
     jobs/<id>/work-<owner>/      results being written by one attempt
     jobs/<id>/results/           mesh.json, registered.png, convergence.json (complete or absent)
 
@@ -19,8 +19,6 @@ import uuid
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
 
 
 @dataclass(frozen=True)
@@ -46,8 +44,8 @@ RESULTS: dict[str, ResultFile] = {
 """The results of a job, by the key :func:`core.io.write_outputs` returns."""
 
 IMAGES = ("reference", "moving")
-"""Names of the images of a job, stored decoded (``<name>.npy``): the API decodes them once to
-check them, the worker loads the arrays instead of decoding again."""
+"""Names of the images of a job, stored as uploaded: the API only checks their headers and
+structure, the worker decodes them (decoding is CPU work, and the worker pool is what scales)."""
 
 
 class LocalStorage:
@@ -97,21 +95,11 @@ class LocalStorage:
         """Remove a staging directory, ignoring a missing one."""
         shutil.rmtree(path, ignore_errors=True)
 
-    @staticmethod
-    def stage_image(staging: Path, name: str, image: np.ndarray) -> None:
-        """Keep the decoded image ``name`` (one of :data:`IMAGES`) in a staging directory, in
-        place of its uploaded bytes."""
+    def image_path(self, job_id: str, name: str) -> Path:
+        """Path of the image ``name`` (one of :data:`IMAGES`) of ``job_id``, as uploaded."""
         if name not in IMAGES:
             raise ValueError(f"unknown image {name!r}")
-        np.save(staging / f"{name}.npy", image, allow_pickle=False)
-        (staging / name).unlink(missing_ok=True)
-
-    def load_image(self, job_id: str, name: str) -> np.ndarray:
-        """The decoded image ``name`` of ``job_id`` (OpenCV layout, as ``core.io.read_image``
-        returned it at submission)."""
-        if name not in IMAGES:
-            raise ValueError(f"unknown image {name!r}")
-        return np.load(self.jobs / job_id / "inputs" / f"{name}.npy", allow_pickle=False)
+        return self.jobs / job_id / "inputs" / name
 
     def points_path(self, job_id: str) -> Path:
         """Path of the points file of ``job_id``, as uploaded."""

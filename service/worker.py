@@ -21,18 +21,20 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import cv2
+import numpy as np
 from pydantic import ValidationError
 
 from core.errors import InputError
-from core.io import load_points, write_outputs
+from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
 from service.settings import Settings
-from service.storage import RESULTS, LocalStorage
+from service.storage import IMAGES, RESULTS, LocalStorage
 from service.store import JobStatus, JobStore
 
 log = logging.getLogger(__name__)
@@ -291,9 +293,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
 
     try:
         with reporter.running():
-            # Decoded (with the pixel limit) and checked by the API at submission.
-            reference = storage.load_image(job_id, "reference")
-            moving = storage.load_image(job_id, "moving")
+            reference, moving = _read_images(context, job_id)
             points = None
             if job.has_points:
                 points = load_points(storage.points_path(job_id).read_bytes(), field="points")
@@ -302,7 +302,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             result = runner(reference, moving, points=points, options=options, progress=reporter)
             reporter.check()
             work = storage.work_dir(job_id, owner)
-            written = write_outputs(result, work)
+            written = write_outputs(result, work, threads=settings.worker_threads)
         missing = [key for key in RESULTS if key not in written]
         if missing:
             raise RuntimeError(f"write_outputs did not write {', '.join(missing)}")
@@ -348,6 +348,22 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         for path in (storage.jobs / job_id).glob("work-*"):
             if path.is_dir():
                 shutil.rmtree(path, ignore_errors=True)
+
+
+def _read_images(context: WorkerContext, job_id: str) -> list[np.ndarray]:
+    """Decode the reference and the moving image of ``job_id`` (both at once if the worker has
+    more than one thread; OpenCV's decoders release the GIL). The API checked their headers and
+    structure; a file that still fails to decode raises :class:`InputError` naming it."""
+    settings = context.settings
+
+    def read(name: str) -> np.ndarray:
+        path = context.storage.image_path(job_id, name)
+        return read_image(path, settings.max_pixels, field=name)
+
+    if settings.worker_threads < 2:
+        return [read(name) for name in IMAGES]
+    with ThreadPoolExecutor(len(IMAGES)) as pool:
+        return list(pool.map(read, IMAGES))
 
 
 def _settle_lost(job_id: str, context: WorkerContext) -> str:

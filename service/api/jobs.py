@@ -6,20 +6,17 @@ import errno
 import json
 import re
 import uuid
-from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures import wait as wait_futures
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
-import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
 from core.errors import InputError
-from core.io import load_points, read_image
+from core.io import load_points, probe_image
 from core.options import RegistrationOptions
 from service.deps import Services, ServicesDep
 from service.problems import (
@@ -33,7 +30,7 @@ from service.problems import (
     result_not_ready,
 )
 from service.schemas import JobList, Link, StatusInfo
-from service.storage import RESULTS
+from service.storage import IMAGES, RESULTS
 from service.store import IdempotencyConflict, Job, JobStatus
 from service.uploads import ReceivedForm, receive_form
 
@@ -43,8 +40,6 @@ FORM_PARTS = ("reference", "moving", "points", "options")
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
 RESULT_ROUTES = {"mesh": "mesh", "registered": "registered.png", "convergence": "convergence"}
 _KEY_PATTERN = re.compile(r"^[\x21-\x7e]{1,255}$")
-_VALIDATION_POOL = ThreadPoolExecutor(max_workers=4, thread_name_prefix="decode")
-"""Decodes the second image of a submission while the request's thread decodes the first."""
 
 
 # --- status documents ----------------------------------------------------------------------
@@ -114,10 +109,12 @@ def parse_options(data: bytes) -> dict[str, Any]:
         raise from_validation_error(exc, prefix="options") from None
 
 
-def validate_submission(
-    form: ReceivedForm, max_pixels: int
-) -> tuple[dict[str, Any], bool, dict[str, np.ndarray]]:
-    """Check every part of a submission, cheapest first.
+def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, Any], bool]:
+    """Check every part of a submission without decoding the images.
+
+    The images' kind, size (against ``max_pixels``) and structure are checked from their bytes
+    (:func:`core.io.probe_image`); decoding them is left to the worker, so that the API process
+    does little CPU work per upload and the worker pool is what scales.
 
     Returns
     -------
@@ -125,14 +122,12 @@ def validate_submission(
         The effective options.
     has_points : bool
         True if conjugate points were sent.
-    images : dict of str to ndarray
-        The decoded reference and moving images.
 
     Raises
     ------
     Problem
         422 for a missing part, bad options or points and images over the pixel limit, 415 for
-        a file that is not a decodable image.
+        a file that is not an image of a supported kind, or a truncated or damaged one.
     """
     for name in ("reference", "moving"):
         if name not in form.parts:
@@ -146,20 +141,11 @@ def validate_submission(
     try:
         if has_points:
             load_points(form.parts["points"].path.read_bytes(), field="points")
-        # core.io decodes with the pixel limit checked from the header first; the two images
-        # are decoded at the same time (the decoder releases the GIL).
-        moving = _VALIDATION_POOL.submit(
-            read_image, form.parts["moving"].path, max_pixels, "moving"
-        )
-        try:
-            reference = read_image(form.parts["reference"].path, max_pixels, field="reference")
-        except BaseException:
-            wait_futures([moving])  # the reference's error is the one reported
-            raise
-        moving_image = moving.result()
+        for name in IMAGES:
+            probe_image(form.parts[name].path, max_pixels, field=name)
     except InputError as exc:
         raise from_input_error(exc) from None
-    return options, has_points, {"reference": reference, "moving": moving_image}
+    return options, has_points
 
 
 def _check_key(key: str | None) -> str | None:
@@ -187,9 +173,7 @@ def _accept(
                     existing.id,
                 )
             return existing, False
-    options, has_points, images = validate_submission(form, settings.max_pixels)
-    for name, image in images.items():
-        storage.stage_image(staging, name, image)
+    options, has_points = validate_submission(form, settings.max_pixels)
     job_id = uuid.uuid4().hex
     # Files first, then the row: a crash in between leaves files without a row (swept later),
     # never a row without its files.

@@ -1,3 +1,4 @@
+import io
 import json
 import zlib
 
@@ -6,9 +7,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from PIL import Image
 
 from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
-from core.io import encode_png, load_points, read_image
+from core.io import encode_png, load_points, probe_image, read_image
 
 
 def test_points_json_and_csv_agree():
@@ -77,10 +79,60 @@ def test_decompression_bomb_refused_before_decoding():
         read_image(bytes(data))
 
 
-def test_grey_alpha_png_encodes_as_bgra():
-    ga = np.dstack([np.full((4, 5), 100, np.uint8), np.full((4, 5), 255, np.uint8)])
-    back = read_image(encode_png(ga))
-    assert back.shape == (4, 5, 4) and back[0, 0].tolist() == [100, 100, 100, 255]
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+@pytest.mark.parametrize("threads", [1, 3])
+def test_png_round_trip(dtype, channels, threads):
+    rng = np.random.default_rng(channels)
+    for shape in [(1, 1), (1, 7), (9, 1), (650, 517)]:  # the last one is split into 3 pieces
+        img = rng.integers(0, np.iinfo(dtype).max, shape + (channels,), dtype=dtype)
+        img = img[:, :, 0] if channels == 1 else img
+        data = encode_png(img, threads=threads)
+        back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        # OpenCV reads grey+alpha as BGRA.
+        expected = np.dstack([img[:, :, 0]] * 3 + [img[:, :, 1]]) if channels == 2 else img
+        assert back.dtype == dtype
+        np.testing.assert_array_equal(back, expected)
+        if dtype == np.uint8:  # an independent decoder; Pillow reads 16-bit colour as 8-bit
+            rgb = img[:, :, [2, 1, 0, 3][:channels]] if channels >= 3 else img
+            np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(data))), rgb)
+
+
+def test_png_of_a_smooth_image_is_smaller_than_opencv_default():
+    y, x = np.mgrid[0:300, 0:400]
+    img = (127 + 60 * np.sin(x / 17.0) * np.cos(y / 23.0)).astype(np.uint8)
+    ours = encode_png(np.dstack([img, np.full_like(img, 255)]))
+    opencv = cv2.imencode(".png", np.dstack([img, img, img, np.full_like(img, 255)]))[1]
+    assert len(ours) < len(opencv) / 2
+
+
+def _damage_idat(png: bytes, fix_crc: bool) -> bytes:
+    """Flip bytes inside the first IDAT chunk's data, keeping its CRC right or not."""
+    data = bytearray(png)
+    at = data.index(b"IDAT")
+    length = int.from_bytes(data[at - 4:at], "big")
+    for i in range(at + 4 + 2, at + 4 + min(length, 40)):
+        data[i] ^= 0x5A
+    if fix_crc:
+        crc = zlib.crc32(bytes(data[at:at + 4 + length]))
+        data[at + 4 + length:at + 8 + length] = crc.to_bytes(4, "big")
+    return bytes(data)
+
+
+def test_probe_checks_structure_without_decoding():
+    img = np.random.default_rng(0).integers(0, 255, (60, 80), dtype=np.uint8)
+    png = encode_png(img)
+    assert probe_image(png, max_pixels=4800) == (80, 60)
+    with pytest.raises(ImageTooLargeError):
+        probe_image(png, max_pixels=4799)
+    for broken in (png[:-30], _damage_idat(png, fix_crc=False)):
+        with pytest.raises(UnsupportedMediaError, match="truncated or damaged"):
+            probe_image(broken)
+    # Right CRCs around pixel data that does not inflate: only decoding can tell.
+    undecodable = _damage_idat(png, fix_crc=True)
+    assert probe_image(undecodable) == (80, 60)
+    with pytest.raises(UnsupportedMediaError, match="could not be decoded"):
+        read_image(undecodable)
 
 
 @settings(max_examples=300, deadline=None)

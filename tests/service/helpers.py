@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import time
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +69,19 @@ def make_pair(width: int = 320, height: int = 240, seed: int = 7) -> Pair:
 
 
 # --- server processes ------------------------------------------------------------------------
+
+
+def png_file(width: int, height: int, idat: bytes) -> bytes:
+    """A structurally valid 8-bit grey PNG (every chunk's CRC right) announcing ``width x
+    height`` pixels, with ``idat`` as its compressed pixel data, whatever that holds."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return b"".join((len(data).to_bytes(4, "big"), kind, data,
+                         zlib.crc32(kind + data).to_bytes(4, "big")))
+
+    ihdr = b"".join((width.to_bytes(4, "big"), height.to_bytes(4, "big"), bytes((8, 0, 0, 0, 0))))
+    return b"".join((b"\x89PNG\r\n\x1a\n", chunk(b"IHDR", ihdr), chunk(b"IDAT", idat),
+                     chunk(b"IEND", b"")))
 
 
 def free_port() -> int:

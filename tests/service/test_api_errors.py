@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import socket
-import struct
 import zlib
 from typing import Any
 
@@ -15,7 +14,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.service.helpers import Pair, Server, assert_problem, submit
+from tests.service.helpers import (
+    Pair,
+    Server,
+    assert_problem,
+    png_file,
+    submit,
+    wait_for,
+)
 
 MAX_UPLOAD = 400 * 1024  # PWLREG_MAX_UPLOAD_BYTES of the test servers
 MAX_PIXELS = 500_000  # PWLREG_MAX_PIXELS of the test servers
@@ -36,18 +42,10 @@ def _files(pair: Pair, **override: Any) -> dict[str, Any]:
 
 
 def png_bomb(width: int, height: int) -> bytes:
-    """A PNG whose header announces ``width x height`` grey pixels with a tiny payload: the
-    header alone must get it refused."""
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + kind + data + struct.pack(
-            ">I", zlib.crc32(kind + data) & 0xFFFFFFFF
-        )
-
-    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
-    # The first rows of zeros; a decoder that trusted the header would allocate w*h bytes.
-    idat = zlib.compress(b"\0" * (width + 1) * 16, 9)
-    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+    """A PNG whose header announces ``width x height`` grey pixels with a tiny payload (the
+    first rows of zeros): the header alone must get it refused, a decoder that trusted it would
+    allocate ``width * height`` bytes."""
+    return png_file(width, height, zlib.compress(b"\0" * (width + 1) * 16, 9))
 
 
 # --- media and size ------------------------------------------------------------------------
@@ -68,10 +66,38 @@ def test_non_image_file_is_415(server: Server, pair: Pair, field: str, content: 
     assert doc["type"] == "urn:pwlreg:problem:unsupported-media-type"
 
 
-def test_truncated_image_is_refused_as_unsupported(server: Server, pair: Pair) -> None:
+@pytest.mark.parametrize("cut", [300, -100])
+def test_truncated_image_is_refused_as_unsupported(server: Server, pair: Pair, cut: int) -> None:
     with server.client() as client:
-        response = client.post("/v1/jobs", files=_files(pair, reference=pair.reference_png[:300]))
+        response = client.post("/v1/jobs", files=_files(pair, reference=pair.reference_png[:cut]))
     assert_problem(response, 415, field="reference")
+
+
+def test_damaged_image_is_refused_as_unsupported(server: Server, pair: Pair) -> None:
+    damaged = bytearray(pair.moving_png)
+    damaged[len(damaged) // 2] ^= 0xFF  # inside the pixel data: a chunk's CRC no longer holds
+    with server.client() as client:
+        response = client.post("/v1/jobs", files=_files(pair, moving=bytes(damaged)))
+    doc = assert_problem(response, 415, field="moving")
+    assert "damaged" in doc["detail"]
+
+
+def test_pixels_that_do_not_decode_fail_the_job_with_the_reason(
+    server: Server, pair: Pair
+) -> None:
+    # Sound structure (the API only checks that, without decoding) but no valid zlib stream:
+    # the worker finds it and the job fails naming the file; the service goes on.
+    broken = png_file(64, 48, b"\x78\x01" + bytes(range(256)) * 4)
+    with server.client() as client:
+        response = client.post("/v1/jobs", files=_files(pair, reference=broken))
+        assert response.status_code == 201
+        job = wait_for(client, response.json()["id"])
+        assert job["status"] == "failed"
+        assert job["error"]["field"] == "reference"
+        assert "could not be decoded" in job["error"]["detail"]
+        assert_problem(client.get(f"/v1/jobs/{job['id']}/mesh"), 409)
+        good = submit(client, pair).json()["id"]
+        assert wait_for(client, good, lambda j: j["status"] == "successful")
 
 
 def test_body_that_is_not_multipart_is_415(server: Server) -> None:

@@ -34,7 +34,7 @@ def test_cancel_running_and_queued_jobs(slow_server: Server, pair: Pair) -> None
         assert job["stage"] == "matching"
         assert client.get(f"/v1/jobs/{queued}").json()["status"] == "accepted"
         job_dir = slow_server.data_dir / "jobs" / running
-        assert (job_dir / "inputs" / "reference.npy").is_file()
+        assert (job_dir / "inputs" / "reference").is_file()
 
         # Dismiss the queued job first: it must never start.
         response = client.delete(f"/v1/jobs/{queued}")

@@ -3,16 +3,18 @@ real data directory, with registration functions injected into the worker."""
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 import time
 from datetime import timedelta
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 from sqlalchemy import update
 
-from core.io import read_image
 from core.options import RegistrationOptions
 from core.pipeline import register
 from service.maintenance import Janitor
@@ -58,8 +60,8 @@ def context(settings: Settings) -> WorkerContext:
 
 def add_job(ctx: WorkerContext, pair: Pair, key: str | None = None) -> str:
     staging = ctx.storage.new_staging()
-    ctx.storage.stage_image(staging, "reference", read_image(pair.reference_png))
-    ctx.storage.stage_image(staging, "moving", read_image(pair.moving_png))
+    (staging / "reference").write_bytes(pair.reference_png)
+    (staging / "moving").write_bytes(pair.moving_png)
     (staging / "points").write_bytes(pair.points_json)
     job_id = os.urandom(16).hex()
     ctx.storage.commit_inputs(staging, job_id)
@@ -371,3 +373,23 @@ def test_a_stuck_registration_is_failed_and_its_process_ended(
     assert job is not None and job.status == JobStatus.failed
     assert job.error is not None and job.error["type"].endswith("time-limit-exceeded")
     assert "did not stop" in job.message
+
+
+def test_worker_threads_change_the_speed_not_the_results(tmp_path: Path, pair: Pair) -> None:
+    # More threads decode the two images at once and compress the PNG in pieces.
+    results = []
+    for threads in (1, 2):
+        settings = Settings(_env_file=None, data_dir=tmp_path / str(threads),  # type: ignore[call-arg]
+                            worker_threads=threads)
+        ctx = WorkerContext.from_settings(settings)
+        ctx.storage.prepare()
+        ctx.store.create_schema()
+        job_id = add_job(ctx, pair)
+        assert run_job(job_id, ctx) == "successful"
+        mesh = json.loads(ctx.storage.result_path(job_id, "mesh").read_text())  # type: ignore[union-attr]
+        png = ctx.storage.result_path(job_id, "registered").read_bytes()  # type: ignore[union-attr]
+        results.append((mesh, cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)))
+    (mesh1, image1), (mesh2, image2) = results
+    assert mesh1["final_triangles"] == mesh2["final_triangles"] and mesh1["swaps"] == mesh2["swaps"]
+    np.testing.assert_array_equal(image1, image2)
+    assert image1.shape[:2] == (240, 320) and image1[..., 3].any()
