@@ -12,7 +12,7 @@
 
 Usage::
 
-    python -m bench.service_speed [--jobs 20] [--batch 40] [--workers 2]
+    python -m bench.service_speed [--jobs 20] [--batch 40] [--workers 2] [--rounds 3]
 
 The services run as ``python -m service.cli serve`` subprocesses on 127.0.0.1 with their data
 directory in a temporary directory.
@@ -255,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=40,
                         help="jobs at once (throughput); 0 skips the throughput runs")
     parser.add_argument("--workers", type=int, default=2, help="workers of the parallel run")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of the throughput runs")
     args = parser.parse_args(argv)
 
     print("load average at start: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
@@ -311,37 +312,47 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         # Throughput, 1 worker against N workers (single-threaded workers, the default), and
         # the same jobs in a plain process pool calling the core (the machine's own ceiling:
-        # no HTTP, no database, no client on the same cores).
+        # no HTTP, no database, no client on the same cores). The four runs alternate, round
+        # after round, so that a change of the machine's load shows in every ratio alike.
         n, w = args.batch, args.workers
-        runs: dict[str, dict[str, float]] = {}
-        for workers in (1, w):
-            data = tmp_dir / f"batch-{workers}" / "data"
-            data.parent.mkdir()
-            with service(workers, data) as (url, pid):
-                runs[f"service, {workers} worker(s)"] = run_batch(url, pid, pair, n)
-        for processes in (1, w):
-            out = tmp_dir / f"core-{processes}"
-            out.mkdir()
-            runs[f"core only, {processes} process(es)"] = core_batch(pair, n, processes, out)
-        print(f"\nthroughput, {n} jobs at once          wall s  jobs/s   CPU ms per job: "
-              "workers     api  client")
-        for label, run in runs.items():
-            cpu = "".join(f"{run[k] * 1000:8.1f}" if k in run else f"{'-':>8}"
+        labels = {"s1": "service, 1 worker", "sN": f"service, {w} workers",
+                  "c1": "core only, 1 process", "cN": f"core only, {w} processes"}
+        runs: dict[str, list[dict[str, float]]] = {key: [] for key in labels}
+        for r in range(args.rounds):
+            for key, count in (("s1", 1), ("sN", w)):
+                data = tmp_dir / f"batch-{r}-{key}" / "data"
+                data.parent.mkdir()
+                with service(count, data) as (url, pid):
+                    runs[key].append(run_batch(url, pid, pair, n))
+            for key, count in (("c1", 1), ("cN", w)):
+                out = tmp_dir / f"core-{r}-{key}"
+                out.mkdir()
+                runs[key].append(core_batch(pair, n, count, out))
+
+        def median(key: str, field: str) -> float:
+            return statistics.median(run[field] for run in runs[key])
+
+        print(f"\nthroughput, {n} jobs at once, median of {args.rounds} rounds")
+        print(f"  {'':<26} {'wall s':>7} {'jobs/s':>7}   CPU ms per job: workers     api  "
+              "client")
+        for key, label in labels.items():
+            cpu = "".join(f"{median(key, k) * 1000:8.1f}" if k in runs[key][0] else f"{'-':>8}"
                           for k in ("workers", "api", "client"))
-            print(f"  {label:<34} {run['wall']:6.2f} {n / run['wall']:7.2f}          {cpu}")
-        ratio = runs["service, 1 worker(s)"]["wall"] / runs[f"service, {w} worker(s)"]["wall"]
-        ceiling = (runs["core only, 1 process(es)"]["wall"]
-                   / runs[f"core only, {w} process(es)"]["wall"])
+            wall = median(key, "wall")
+            print(f"  {label:<26} {wall:7.2f} {n / wall:7.2f}                  {cpu}")
+        ratios = [a["wall"] / b["wall"] for a, b in zip(runs["s1"], runs["sN"], strict=True)]
+        ceilings = [a["wall"] / b["wall"] for a, b in zip(runs["c1"], runs["cN"], strict=True)]
+        ratio, ceiling = statistics.median(ratios), statistics.median(ceilings)
         verdict = "meets" if ratio >= 1.8 else "MISSES"
-        print(f"throughput {w} workers / 1 worker: {ratio:.2f}x ({verdict} the 1.8x target); "
-              f"the core alone in {w} processes / 1: {ceiling:.2f}x; "
-              f"{os.cpu_count()} CPU cores on this machine")
-        many = runs[f"service, {w} worker(s)"]
-        total = (many["workers"] + many["api"] + many["client"]) * 1000
-        print(f"  with {w} workers, every job costs {total:.0f} CPU ms on this machine "
-              f"(workers {many['workers'] * 1000:.0f}, API {many['api'] * 1000:.0f}, "
-              f"client {many['client'] * 1000:.0f}): at most {os.cpu_count()} / {total:.0f} ms "
-              f"= {os.cpu_count() / total * 1000:.2f} jobs/s")
+        print(f"throughput {w} workers / 1 worker: {ratio:.2f}x median ("
+              + ", ".join(f"{x:.2f}" for x in ratios) + f"; {verdict} the 1.8x target)")
+        print(f"the core alone, {w} processes / 1: {ceiling:.2f}x median ("
+              + ", ".join(f"{x:.2f}" for x in ceilings) + f"); {os.cpu_count()} CPU cores")
+        total = sum(median("sN", k) for k in ("workers", "api", "client")) * 1000
+        print(f"  with {w} workers a job costs {total:.0f} CPU ms in all (workers "
+              f"{median('sN', 'workers') * 1000:.0f}, API {median('sN', 'api') * 1000:.0f}, "
+              f"client {median('sN', 'client') * 1000:.0f}): {os.cpu_count()} cores give at "
+              f"most {os.cpu_count() / total * 1000:.2f} jobs/s")
     print("load average at end: {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     return 0
 

@@ -142,8 +142,8 @@ def result_not_ready(job_id: str, status: str) -> Problem:
 
 
 def from_input_error(exc: InputError) -> Problem:
-    """The problem for an error of :mod:`core` about the input: 415 for bytes that are not a
-    decodable image, 422 for everything else (too many pixels, bad points, ...)."""
+    """The problem for an error of :mod:`core` about the input: 415 for bytes that are not an
+    image of a supported kind (or a truncated or damaged one), 422 for everything else (too many pixels, bad points, ...)."""
     field = getattr(exc, "field", None)
     if isinstance(exc, UnsupportedMediaError):
         return unsupported_media(str(exc), field)
@@ -177,7 +177,8 @@ _RESPONSE_TEXT = {
     404: "No such job.",
     409: "The job has not succeeded (yet); no result.",
     413: "A part of the upload is over the size limit.",
-    415: "Not multipart/form-data, or a file that is not a decodable image.",
+    415: "Not multipart/form-data, or a file that is not an image of a supported kind, or a "
+    "truncated or damaged one.",
     422: "Invalid input: missing or unknown part, bad options or points, image over the pixel "
     "limit, bad query parameter, idempotency key reused with another request.",
     503: "Not ready: the failed checks are listed in `checks`.",
