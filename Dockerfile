@@ -22,15 +22,23 @@ ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 # Dependencies first (a layer that changes only with pyproject.toml), then the code.
 COPY pyproject.toml README.md ./
+# The placeholder packages and setuptools' build directory go away with the layer: build/ would
+# otherwise hold the empty placeholders, newer than the real files copied next.
 RUN mkdir core service \
     && touch core/__init__.py service/__init__.py \
     && pip install --upgrade pip \
     && pip install . \
-    && pip uninstall -y pwlreg
+    && pip uninstall -y pwlreg \
+    && rm -rf build core service ./*.egg-info
 COPY core ./core
 COPY service ./service
+# The import check runs from / so that it sees the installed package, not the sources. The
+# numba kernels are compiled here, once, into a cache the runtime stage keeps: a new container
+# serves its first job without the few seconds of compilation (on another CPU model numba
+# compiles again, into the same writable cache).
 RUN pip install --no-deps . \
-    && python -c "import cv2, core.pipeline, service.app"
+    && cd / && python -c "import cv2, core.pipeline, service.app, service.cli" \
+    && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from core.kernels import warm_up; warm_up()"
 
 # --- runtime: the virtual environment only, as a non-root user ----------------------------------
 FROM python:${PYTHON_VERSION}-slim AS runtime
@@ -45,13 +53,12 @@ RUN groupadd --system --gid 10001 pwlreg \
     && chown pwlreg:pwlreg /data
 
 COPY --from=build /opt/venv /opt/venv
+COPY --from=build --chown=pwlreg:pwlreg /opt/numba-cache /opt/numba-cache
 
-# numba compiles core's kernels on first use and caches them; the installed package is
-# read-only for the service user, so the cache goes to a writable directory.
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
-    NUMBA_CACHE_DIR=/tmp/numba-cache \
+    NUMBA_CACHE_DIR=/opt/numba-cache \
     PWLREG_DATA_DIR=/data
 
 USER pwlreg
