@@ -143,7 +143,8 @@ def result_not_ready(job_id: str, status: str) -> Problem:
 
 def from_input_error(exc: InputError) -> Problem:
     """The problem for an error of :mod:`core` about the input: 415 for bytes that are not an
-    image of a supported kind (or a truncated or damaged one), 422 for everything else (too many pixels, bad points, ...)."""
+    image of a supported kind (or a truncated or damaged one), 422 for everything else (too
+    many pixels, bad points, ...)."""
     field = getattr(exc, "field", None)
     if isinstance(exc, UnsupportedMediaError):
         return unsupported_media(str(exc), field)

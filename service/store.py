@@ -217,8 +217,10 @@ class JobStore:
         return self._update(statement) == 1
 
     def _update(self, statement: Any) -> int:
-        with self._sessions.begin() as session:
-            return session.execute(statement).rowcount
+        # A plain connection: an ORM session costs about three times as much per update
+        # (measured), and the workers update their job several times per job.
+        with self.engine.begin() as connection:
+            return connection.execute(statement).rowcount
 
     # --- creation and reading ----------------------------------------------------------------
 
