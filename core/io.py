@@ -52,6 +52,8 @@ def probe_image(
     ------
     UnsupportedMediaError
         Empty, not an image of a supported kind, or structurally broken.
+    InputError
+        Floating-point or 32-bit samples, or less than 2 pixels wide or high.
     ImageTooLargeError
         Over ``max_pixels``.
     """
@@ -61,6 +63,7 @@ def probe_image(
     try:
         with Image.open(io.BytesIO(data)) as header:
             width, height = header.size
+            mode, kind = header.mode, header.format
             header.verify()
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
         raise UnsupportedMediaError(
@@ -68,6 +71,12 @@ def probe_image(
             "truncated or damaged",
             field,
         ) from exc
+    # What decoding would refuse (core.imaging.check_image), known from the header already:
+    # floating-point and 32-bit samples (Pillow's "I" is 32-bit except for 16-bit PGM/PPM).
+    if mode == "F" or mode.startswith("I;16S") or (mode == "I" and kind != "PPM"):
+        raise InputError(f"{field} must be 8- or 16-bit (unsigned), got Pillow mode {mode}", field)
+    if min(width, height) < 2:
+        raise InputError(f"{field} is too small: {width}x{height} pixels", field)
     max_pixels = min(max_pixels or _DECODER_MAX_PIXELS, _DECODER_MAX_PIXELS)
     if width * height > max_pixels:
         raise ImageTooLargeError(

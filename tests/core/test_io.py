@@ -119,6 +119,39 @@ def _damage_idat(png: bytes, fix_crc: bool) -> bytes:
     return bytes(data)
 
 
+@pytest.mark.parametrize(
+    "image, ext, match",
+    [
+        (np.zeros((5, 5), np.float32), ".tiff", "8- or 16-bit"),
+        (np.zeros((5, 5), np.int32), ".tiff", "8- or 16-bit"),
+        (np.zeros((5, 5), np.int16), ".tiff", "8- or 16-bit"),
+        (np.zeros((1, 50), np.uint8), ".png", "too small"),
+    ],
+)
+def test_probe_refuses_what_decoding_would_refuse(image, ext, match):
+    data = cv2.imencode(ext, image)[1].tobytes()
+    for check in (probe_image, read_image):
+        with pytest.raises(InputError, match=match):
+            check(data)
+
+
+@pytest.mark.parametrize(
+    "image, ext",
+    [
+        (np.zeros((5, 6), np.uint16), ".pgm"),
+        (np.zeros((5, 6, 3), np.uint16), ".ppm"),
+        (np.zeros((5, 6), np.uint16), ".tiff"),
+        (np.zeros((5, 6, 3), np.uint16), ".png"),
+        (np.zeros((5, 6, 3), np.uint8), ".bmp"),
+        (np.zeros((5, 6, 3), np.uint8), ".jpg"),
+    ],
+)
+def test_probe_accepts_every_supported_kind(image, ext):
+    data = cv2.imencode(ext, image)[1].tobytes()
+    assert probe_image(data) == (6, 5)
+    assert read_image(data).shape == image.shape
+
+
 def test_probe_checks_structure_without_decoding():
     img = np.random.default_rng(0).integers(0, 255, (60, 80), dtype=np.uint8)
     png = encode_png(img)

@@ -130,6 +130,22 @@ def test_real_image_over_the_pixel_limit_is_422(server: Server, pair: Pair) -> N
     assert str(MAX_PIXELS) in doc["detail"]
 
 
+@pytest.mark.parametrize(
+    ("image", "ext", "detail"),
+    [(np.zeros((40, 50), np.float32), ".tiff", "8- or 16-bit"),
+     (np.zeros((1, 50), np.uint8), ".png", "too small")],
+)
+def test_image_the_registration_cannot_use_is_422_at_submission(
+    server: Server, pair: Pair, image: np.ndarray, ext: str, detail: str
+) -> None:
+    with server.client() as client:
+        response = client.post(
+            "/v1/jobs", files=_files(pair, moving=cv2.imencode(ext, image)[1].tobytes())
+        )
+    doc = assert_problem(response, 422, field="moving")
+    assert detail in doc["detail"]
+
+
 def test_part_over_the_upload_limit_is_413_while_streaming(server: Server, pair: Pair) -> None:
     oversized = np.random.default_rng(0).bytes(MAX_UPLOAD + 50_000)
     with server.client() as client:
