@@ -28,6 +28,9 @@ if TYPE_CHECKING:
 Image.MAX_IMAGE_PIXELS = None
 _DECODER_MAX_PIXELS = 2**30
 """OpenCV refuses to decode more pixels than this whatever the caller allows."""
+_FORMATS = ("PNG", "JPEG", "TIFF", "PPM", "BMP")
+"""Pillow's names of the accepted formats (its JPEG reader also opens the multi-picture JPEGs
+of many cameras)."""
 
 
 def probe_image(
@@ -61,7 +64,7 @@ def probe_image(
     if not data:
         raise UnsupportedMediaError(f"{field} is empty", field)
     try:
-        with Image.open(io.BytesIO(data)) as header:
+        with Image.open(io.BytesIO(data), formats=_FORMATS) as header:
             width, height = header.size
             mode, kind = header.mode, header.format
             header.verify()
@@ -72,8 +75,8 @@ def probe_image(
             field,
         ) from exc
     # What decoding would refuse (core.imaging.check_image), known from the header already:
-    # floating-point and 32-bit samples (Pillow's "I" is 32-bit except for 16-bit PGM/PPM).
-    if mode == "F" or mode.startswith("I;16S") or (mode == "I" and kind != "PPM"):
+    # TIFF alone, of the formats above, can hold float, signed or 32-bit samples.
+    if kind == "TIFF" and (mode in ("F", "I") or mode.startswith("I;16S")):
         raise InputError(f"{field} must be 8- or 16-bit (unsigned), got Pillow mode {mode}", field)
     if min(width, height) < 2:
         raise InputError(f"{field} is too small: {width}x{height} pixels", field)

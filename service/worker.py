@@ -358,6 +358,10 @@ def _read_images(context: WorkerContext, job_id: str) -> list[np.ndarray]:
 
     def read(name: str) -> np.ndarray:
         path = context.storage.image_path(job_id, name)
+        # Jobs accepted before 2026-11-22 kept their inputs decoded, as <name>.npy.
+        legacy = path.with_name(f"{name}.npy")
+        if not path.exists() and legacy.exists():
+            return np.load(legacy, allow_pickle=False)
         return read_image(path, settings.max_pixels, field=name)
 
     if settings.worker_threads < 2:

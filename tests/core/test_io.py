@@ -139,6 +139,7 @@ def test_probe_refuses_what_decoding_would_refuse(image, ext, match):
     "image, ext",
     [
         (np.zeros((5, 6), np.uint16), ".pgm"),
+        (np.zeros((5, 6), np.uint16), ".png"),
         (np.zeros((5, 6, 3), np.uint16), ".ppm"),
         (np.zeros((5, 6), np.uint16), ".tiff"),
         (np.zeros((5, 6, 3), np.uint16), ".png"),
@@ -150,6 +151,14 @@ def test_probe_accepts_every_supported_kind(image, ext):
     data = cv2.imencode(ext, image)[1].tobytes()
     assert probe_image(data) == (6, 5)
     assert read_image(data).shape == image.shape
+
+
+@pytest.mark.parametrize("kind", ["TGA", "PCX", "GIF", "WEBP", "ICO"])
+def test_probe_refuses_other_formats_pillow_knows(kind):
+    buffer = io.BytesIO()
+    Image.new("RGB", (40, 30)).save(buffer, kind)
+    with pytest.raises(UnsupportedMediaError, match="not a supported image"):
+        probe_image(buffer.getvalue())
 
 
 def test_probe_checks_structure_without_decoding():

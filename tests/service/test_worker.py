@@ -393,3 +393,14 @@ def test_worker_threads_change_the_speed_not_the_results(tmp_path: Path, pair: P
     assert mesh1["final_triangles"] == mesh2["final_triangles"] and mesh1["swaps"] == mesh2["swaps"]
     np.testing.assert_array_equal(image1, image2)
     assert image1.shape[:2] == (240, 320) and image1[..., 3].any()
+
+
+def test_jobs_queued_by_the_previous_version_still_run(context: WorkerContext, pair: Pair) -> None:
+    # Up to 2026-11-22 the API stored the decoded images (<name>.npy) instead of the uploads.
+    job_id = add_job(context, pair)
+    inputs = context.storage.jobs / job_id / "inputs"
+    for name, data in (("reference", pair.reference_png), ("moving", pair.moving_png)):
+        np.save(inputs / f"{name}.npy", cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                      cv2.IMREAD_UNCHANGED))
+        (inputs / name).unlink()
+    assert run_job(job_id, context) == "successful"
