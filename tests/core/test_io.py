@@ -98,6 +98,19 @@ def test_png_round_trip(dtype, channels, threads):
             np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(data))), rgb)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_png_in_many_blocks_and_pieces_of_a_strided_image(monkeypatch, threads):
+    # Small blocks and pieces, as a huge image would have them; a view with negative strides.
+    monkeypatch.setattr("core.io._PNG_BLOCK_BYTES", 1000)
+    monkeypatch.setattr("core.io._PNG_PIECE_BYTES", 300 * 1024)
+    base = np.random.default_rng(1).integers(0, 65535, (700, 900, 4), dtype=np.uint16)
+    img = base[::-1, 100:, :]
+    data = encode_png(img, threads=threads)
+    assert data.count(b"IDAT") >= 5
+    back = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(back, img)
+
+
 def test_png_of_a_smooth_image_is_smaller_than_opencv_default():
     y, x = np.mgrid[0:300, 0:400]
     img = (127 + 60 * np.sin(x / 17.0) * np.cos(y / 23.0)).astype(np.uint8)
