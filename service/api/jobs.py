@@ -330,7 +330,9 @@ def list_jobs(
               examples=[["running"]]),
     ] = None,
     limit: Annotated[int, Query(ge=1, le=100, description="Jobs per page.")] = 20,
-    offset: Annotated[int, Query(ge=0, description="Jobs to skip (newest first).")] = 0,
+    offset: Annotated[
+        int, Query(ge=0, le=2**53 - 1, description="Jobs to skip (newest first).")
+    ] = 0,
 ) -> JobList:
     statuses = status or []
     jobs, matched = services.store.list(statuses, limit=limit, offset=offset)
