@@ -7,6 +7,7 @@ import json
 import socket
 import zlib
 from typing import Any
+from urllib.parse import quote
 
 import cv2
 import numpy as np
@@ -362,3 +363,28 @@ def test_random_parts_never_cause_a_server_error(
             return
     assert 400 <= response.status_code < 500, response.text
     assert response.headers["content-type"].startswith("application/problem+json")
+
+
+@settings(max_examples=40, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    query=st.dictionaries(
+        st.sampled_from(["limit", "offset", "status"]),
+        st.one_of(
+            st.integers(min_value=-(2**70), max_value=2**70).map(str),
+            st.sampled_from([2**31, 2**53, 2**63 - 1, 2**63, 2**64 + 5, -(2**63) - 1]).map(str),
+            st.text(max_size=20),
+            st.sampled_from(["accepted", "running", "1e3", ""]),
+        ),
+    ),
+    job_id=st.text(max_size=40).filter(lambda s: "/" not in s and s not in (".", "..")),
+)
+def test_random_queries_and_ids_never_cause_a_server_error(
+    server: Server, query: dict, job_id: str
+) -> None:
+    with server.client() as client:
+        listed = client.get("/v1/jobs", params=query)
+        assert listed.status_code in (200, 422), listed.text
+        for path in ("", "/mesh", "/registered.png", "/convergence"):
+            response = client.get(f"/v1/jobs/{quote(job_id, safe='')}{path}")
+            assert response.status_code < 500, response.text
