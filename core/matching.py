@@ -23,10 +23,12 @@ criteria; ``source`` names the matcher of the
 kept pairs, and the counts of a tracking attempt that lost carry an ``lk_`` prefix
 (``prior_sift_pairs`` marks tracking started from SIFT).
 
-Every pair list then goes through the robust epipolar filter (:mod:`core.epipolar`) and, for
-automatic matches only, a spatial suppression that keeps the strongest pairs with a minimum
-distance between reference points and at most ``max_points`` of them, spread over the overlap
-by a grid.
+Automatic pairs are first checked by correlation (:func:`core.reliability.uniqueness`: a pair
+on a repeated pattern, or whose correlation peak is not where the matcher put it, is dropped),
+then go through the robust epipolar filter (:mod:`core.epipolar`), a check against the local map
+of their neighbours (:func:`core.reliability.neighbour_outliers`) and a spatial suppression that
+keeps the strongest pairs with a minimum distance between reference points and at most
+``max_points`` of them, spread over the overlap by a grid.
 
 Conventions: images are OpenCV arrays (grey ``(H, W)`` or BGR(A) ``(H, W, C)``, uint8 or
 uint16); matching runs on their 8-bit luminance (:func:`core.imaging.to_gray8`). Point arrays are
@@ -46,6 +48,7 @@ from core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
 from core.errors import InputError, NotEnoughPointsError
 from core.imaging import check_image, to_gray8
 from core.options import RegistrationOptions
+from core.reliability import neighbour_outliers, uniqueness
 
 #: Pairs needed for a mesh (one triangle).
 MIN_MESH_PAIRS = 3
@@ -58,6 +61,10 @@ AUTO_MIN_CONSISTENT = 100
 #: ``auto`` also falls back when fewer than this share of the forward-backward consistent tracks
 #: pass the epipolar filter: good tracks are consistent with one epipolar geometry.
 AUTO_MIN_INLIER_SHARE = 0.5
+
+#: At most this many times ``max_points`` candidates are checked for uniqueness (the spread step
+#: thins denser sets first): enough for the later filters to choose from.
+VERIFY_BUDGET = 1.5
 
 #: Longer side (pixels) of the coarse level on which the global prior is tracked.
 COARSE_SIDE = 512
@@ -85,13 +92,16 @@ class ConjugatePoints:
     counts : dict of str to int
         Pairs left after each stage, in order. Automatic: ``detected`` (reference corners or
         keypoints), ``tracked`` / ``matched``, ``consistent`` (forward-backward check, or ratio
-        and mutual checks), ``epipolar`` (epipolar inliers), ``kept``. Client: ``given``,
+        and mutual checks), ``unique`` (correlation check: unambiguous, and the correlation
+        peak where the matcher put the point), ``epipolar`` (epipolar inliers), ``neighbours``
+        (not contradicted by the local map of their neighbours), ``kept``. Client: ``given``,
         ``valid``, ``epipolar``, ``kept``. When ``auto`` fell back to SIFT, the tracker's own
         numbers are kept with an ``lk_`` prefix.
     rejected : dict of str to int
         Reason -> number of pairs rejected for it (``"lost"``, ``"outside image"``,
-        ``"forward-backward"``, ``"ratio test"``, ``"mutual check"``, ``"not finite"``,
-        ``"duplicate"``, ``"epipolar"``, ``"spread"``).
+        ``"forward-backward"``, ``"ratio test"``, ``"mutual check"``, ``"ambiguous"``,
+        ``"disagreement"``, ``"low texture"``, ``"unverifiable"``, ``"epipolar"``,
+        ``"neighbours"``, ``"not finite"``, ``"duplicate"``, ``"spread"``).
     epipolar : EpipolarModel or None
         The estimated epipolar geometry; None when the filter is off.
     residuals : np.ndarray
@@ -141,6 +151,9 @@ class Matches:
         ``"lk"`` or ``"sift"``.
     counts, rejected : dict of str to int
         Stage counts and rejections so far (see :class:`ConjugatePoints`).
+    prior : np.ndarray, optional
+        (3, 3) global homography reference -> moving the matcher worked from (the tracker's
+        prior), used to compare patches with little distortion.
     """
 
     reference: np.ndarray
@@ -149,6 +162,7 @@ class Matches:
     source: str
     counts: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
+    prior: np.ndarray | None = None
 
     def subset(self, keep: np.ndarray) -> Matches:
         """Same matches restricted to a boolean mask or index array."""
@@ -159,6 +173,7 @@ class Matches:
             self.source,
             dict(self.counts),
             dict(self.rejected),
+            self.prior,
         )
 
 
@@ -444,7 +459,7 @@ def match_lk(
     good = ok_in & (fb <= fb_threshold)
     rejected["forward-backward"] = int(np.count_nonzero(ok_in & ~good))
     counts["consistent"] = int(np.count_nonzero(good))
-    return Matches(corners[good], moving[good], score[good], "lk", counts, rejected)
+    return Matches(corners[good], moving[good], score[good], "lk", counts, rejected, H)
 
 
 # --- matcher 2: SIFT ------------------------------------------------------------------------------
@@ -624,20 +639,49 @@ def _epipolar(
     return model, residuals <= model.threshold, residuals
 
 
+def _verify(matches: Matches, images: tuple[np.ndarray, np.ndarray], seed: int) -> Matches:
+    """Drop the pairs :func:`core.reliability.uniqueness` finds ambiguous or contradicted."""
+    prior = matches.prior
+    if prior is None:
+        prior = _homography_from_matches(matches, seed)
+    check = uniqueness(images[0], images[1], matches.reference, matches.moving, prior)
+    out = matches.subset(check.ok)
+    for cause, n in check.counts().items():
+        out.rejected[cause] = out.rejected.get(cause, 0) + n
+    out.counts["unique"] = len(out.reference)
+    return out
+
+
 def _filter_matches(
-    matches: Matches, options: RegistrationOptions
+    matches: Matches, options: RegistrationOptions, images: tuple[np.ndarray, np.ndarray]
 ) -> tuple[Matches, EpipolarModel | None, np.ndarray]:
-    """Epipolar filter of automatic matches; returns the inliers, the model and residuals."""
+    """Uniqueness check, epipolar filter and neighbourhood check of automatic matches; returns
+    the pairs kept, the epipolar model and the pairs' epipolar residuals."""
+    # The checks cost a correlation per pair: thin a very dense candidate set first.
+    budget = int(VERIFY_BUDGET * options.max_points)
+    if len(matches.reference) > budget:
+        keep = spread_points(matches.reference, matches.score, budget, options.min_distance)
+        n = len(matches.reference)
+        matches = matches.subset(keep)
+        matches.rejected["spread"] = matches.rejected.get("spread", 0) + n - len(keep)
+    matches = _verify(matches, images, options.seed)
     if not options.epipolar_filter:
         matches.counts["epipolar"] = len(matches.reference)
-        return matches, None, np.full(len(matches.reference), np.nan)
-    model, inl, res = _epipolar(
-        matches.reference, matches.moving, options, f"matching ({matches.source})"
-    )
-    out = matches.subset(inl)
-    out.counts["epipolar"] = int(np.count_nonzero(inl))
-    out.rejected["epipolar"] = int(np.count_nonzero(~inl))
-    return out, model, res[inl]
+        residuals = np.full(len(matches.reference), np.nan)
+        model = None
+    else:
+        model, inl, res = _epipolar(
+            matches.reference, matches.moving, options, f"matching ({matches.source})"
+        )
+        matches = matches.subset(inl)
+        matches.counts["epipolar"] = int(np.count_nonzero(inl))
+        matches.rejected["epipolar"] = int(np.count_nonzero(~inl))
+        residuals = res[inl]
+    outliers = neighbour_outliers(matches.reference, matches.moving)
+    out = matches.subset(~outliers)
+    out.rejected["neighbours"] = int(np.count_nonzero(outliers))
+    out.counts["neighbours"] = len(out.reference)
+    return out, model, residuals[~outliers]
 
 
 def _homography_from_matches(
@@ -652,22 +696,24 @@ def _homography_from_matches(
 Filtered = tuple[Matches, "EpipolarModel | None", np.ndarray]
 
 
-def _try_filter(matches: Matches, options: RegistrationOptions) -> Filtered | NotEnoughPointsError:
+def _try_filter(
+    matches: Matches, options: RegistrationOptions, images: tuple[np.ndarray, np.ndarray]
+) -> Filtered | NotEnoughPointsError:
     try:
-        return _filter_matches(matches, options)
+        return _filter_matches(matches, options, images)
     except NotEnoughPointsError as exc:
         return exc
 
 
 def _is_coherent(result: Filtered | NotEnoughPointsError) -> bool:
-    """Whether at least :data:`AUTO_MIN_INLIER_SHARE` of the matcher's consistent pairs are
-    epipolar inliers (a wrong global prior gives forward-backward consistent but incoherent
-    tracks)."""
+    """Whether at least :data:`AUTO_MIN_INLIER_SHARE` of the matcher's unambiguous pairs are
+    epipolar and neighbourhood inliers (a wrong global prior gives forward-backward consistent
+    but incoherent tracks)."""
     if isinstance(result, NotEnoughPointsError):
         return False
     matches = result[0]
     n = len(matches.reference)
-    return n >= AUTO_MIN_INLIER_SHARE * matches.counts.get("consistent", n)
+    return n >= AUTO_MIN_INLIER_SHARE * matches.counts.get("unique", n)
 
 
 def _is_enough(result: Filtered | NotEnoughPointsError, options: RegistrationOptions) -> bool:
@@ -692,22 +738,24 @@ def _automatic(
             ref_gray, mov_gray, candidates, options.min_distance, seed=seed, prior=prior
         )
 
+    images = (cv2.equalizeHist(ref_gray), cv2.equalizeHist(mov_gray))
     if options.matcher == "lk":
-        result = _try_filter(lk(), options)
+        result = _try_filter(lk(), options, images)
     elif options.matcher == "sift":
-        result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options)
+        result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options, images)
     else:
-        tracked = _try_filter(lk(), options)
+        tracked = _try_filter(lk(), options, images)
         result = tracked
         if not _is_enough(tracked, options):
-            attempts = [tracked, _try_filter(match_sift(ref_gray, mov_gray, candidates), options)]
+            sift_matches = match_sift(ref_gray, mov_gray, candidates)
+            attempts = [tracked, _try_filter(sift_matches, options, images)]
             sift = attempts[1]
             if not isinstance(sift, NotEnoughPointsError):
                 # Tracking restarted from the SIFT geometry is usually denser and more accurate
                 # than SIFT itself (LK at full resolution).
                 H = _homography_from_matches(sift[0], seed)
                 if H is not None:
-                    guided = _try_filter(lk(prior=H), options)
+                    guided = _try_filter(lk(prior=H), options, images)
                     if not isinstance(guided, NotEnoughPointsError):
                         guided[0].counts["prior_sift_pairs"] = len(sift[0].reference)
                     attempts.append(guided)
@@ -723,7 +771,7 @@ def _automatic(
                 and not isinstance(tracked, NotEnoughPointsError)
                 and result[0] is not tracked[0]
             ):
-                for k in ("detected", "tracked", "consistent", "epipolar"):
+                for k in ("detected", "tracked", "consistent", "unique", "epipolar"):
                     result[0].counts[f"lk_{k}"] = tracked[0].counts.get(k, 0)
             elif not isinstance(result, NotEnoughPointsError) and isinstance(
                 tracked, NotEnoughPointsError

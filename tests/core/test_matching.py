@@ -384,9 +384,10 @@ def test_strecha_pairs_agree_with_the_true_fundamental_matrix(name):
     cp = find_conjugate_points(pair.reference, pair.moving, opts(max_points=600))
     err = realdata.sampson_distance(pair.F, cp.reference, cp.moving)
     assert cp.source == "lk"
-    assert len(cp) >= 300
+    # The uniqueness check drops the repeated arches and windows (herzjesu keeps about 260).
+    assert len(cp) >= 200
+    assert np.percentile(err, 99) < 1.5
     assert np.median(err) < 0.35  # 0.5 px at full size is 0.25 px at half size (+ margin)
-    assert np.percentile(err, 99) < 3.0
 
 
 @pytest.mark.parametrize("name", ["oxford_leuven", "oxford_graf"])

@@ -1,0 +1,315 @@
+"""Checks that tell a confident match from a lucky one.
+
+A tracker or a descriptor matcher returns a position for every point it is given, and a robust
+epipolar fit cannot tell a whole field of matches shifted by one period of a repeated pattern
+from the truth: a plane of consistently wrong pairs satisfies one epipolar geometry. Two
+independent checks follow every automatic matcher here.
+
+* :func:`uniqueness` correlates the reference patch of each pair over a search window of the
+  moving image (resampled into the reference frame by the matcher's global homography) on two
+  scales. A pair is **ambiguous** when a second correlation peak comes close to the best one
+  (a repeated pattern, where no matcher can know which copy is right), and the matcher and the
+  correlation **disagree** when the best peak is not where the matcher put the point.
+* :func:`neighbour_outliers` predicts each pair from an affine map fitted to its nearest
+  neighbours; a pair that its neighbourhood contradicts by much more than the neighbourhood
+  contradicts itself is dropped.
+
+Conventions: 8-bit grey images; point arrays ``(N, 2)`` float64 pixels, x right, y down, (0, 0)
+the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+#: A pair is ambiguous when its second correlation peak reaches this share of the best one.
+AMBIGUITY_RATIO = 0.97
+
+#: Largest distance (pixels of the scale checked) between the matcher's position and the best
+#: correlation peak for the two to agree.
+AGREEMENT_PX = 1.5
+
+#: Template side and search radius (pixels) at full resolution: the matcher's precision and
+#: patterns repeating every few pixels.
+FINE_TEMPLATE, FINE_RADIUS = 11, 10
+
+#: Template side and search radius (pixels) on the pyramid levels 4, 16, ... times smaller, down
+#: to one whose longer side is at most :data:`COARSE_SIDE`: there the radius covers 6-12 % of
+#: the image side, the scale of the mistake a global prior locked on the wrong copy of a
+#: pattern makes, and the 60-pixel template at 1024 px sees past bricks and tiles.
+COARSE_TEMPLATE, COARSE_RADIUS, COARSE_SIDE = 15, 20, 256
+
+#: Standard deviation (grey levels) under which a template has no texture to correlate.
+MIN_TEMPLATE_STD = 2.0
+
+
+@dataclass(frozen=True)
+class UniquenessResult:
+    """Per pair, what the correlation check found.
+
+    Attributes
+    ----------
+    ok : ndarray of bool, shape (N,)
+        The pair passed both scales.
+    cause : ndarray of object, shape (N,)
+        ``""`` for kept pairs, else ``"ambiguous"``, ``"disagreement"`` or ``"low texture"``.
+    peak : ndarray of float, shape (N,)
+        Best normalized correlation at the fine scale (NaN when not computed).
+    ratio : ndarray of float, shape (N,)
+        Largest ratio of the second to the best peak over the two scales (NaN when not computed).
+    """
+
+    ok: np.ndarray
+    cause: np.ndarray
+    peak: np.ndarray
+    ratio: np.ndarray
+
+    def counts(self) -> dict[str, int]:
+        """Number of dropped pairs per cause."""
+        causes, n = np.unique(self.cause[~self.ok].astype(str), return_counts=True)
+        return {str(c): int(k) for c, k in zip(causes, n, strict=True)}
+
+
+_KERNEL3 = np.ones((3, 3), np.uint8)
+
+
+def _peaks(surface: np.ndarray, centre: tuple[float, float]) -> tuple[float, float, float]:
+    """Best value, second-best local maximum (more than 2 px from the best) and the best one's
+    distance from ``centre``."""
+    _, best, _, loc = cv2.minMaxLoc(surface)
+    mask = (surface >= cv2.dilate(surface, _KERNEL3)).view(np.uint8)
+    cv2.circle(mask, loc, 2, 0, -1)
+    _, second, _, _ = cv2.minMaxLoc(surface, mask)
+    if not mask.any():
+        second = -1.0
+    return best, second, float(np.hypot(loc[0] - centre[0], loc[1] - centre[1]))
+
+
+def _check_scale(
+    ref: np.ndarray,
+    warped: np.ndarray,
+    ref_pts: np.ndarray,
+    pred_pts: np.ndarray,
+    template: int,
+    radius: int,
+    threads: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Best peak, second/best ratio, peak distance and a low-texture flag for each pair."""
+    n = len(ref_pts)
+    if threads is None:
+        threads = max(1, min(cv2.getNumThreads(), n // 64))
+    if threads > 1:
+        # OpenCV releases the GIL: chunks of pairs run side by side on the worker's threads.
+        chunks = np.array_split(np.arange(n), threads)
+        with ThreadPoolExecutor(threads) as pool:
+            parts = list(pool.map(
+                lambda c: _check_scale(ref, warped, ref_pts[c], pred_pts[c], template, radius, 1),
+                chunks,
+            ))
+        return tuple(np.concatenate(col) for col in zip(*parts, strict=True))  # type: ignore
+    best = np.full(n, np.nan)
+    ratio = np.full(n, np.nan)
+    dist = np.full(n, np.inf)
+    flat = np.zeros(n, bool)
+    half = template // 2
+    h, w = ref.shape
+    hw, ww = warped.shape
+    if h < template or w < template:
+        return best, ratio, dist, flat
+    # The template is centred on the reference point rounded, and moved inside the image when
+    # the point is nearer the border than half a template: its match is expected shifted alike.
+    r = np.rint(ref_pts).astype(np.int64)
+    r[:, 0] = np.clip(r[:, 0], half, w - 1 - half)
+    r[:, 1] = np.clip(r[:, 1], half, h - 1 - half)
+    expect = pred_pts + (r - ref_pts)
+    p = np.rint(expect).astype(np.int64)
+    inside = np.all(np.abs(r - ref_pts) <= half + 1, axis=1)
+    for i in range(n):
+        rx, ry = r[i]
+        px, py = p[i]
+        if not inside[i]:
+            continue
+        tpl = ref[ry - half : ry + half + 1, rx - half : rx + half + 1]
+        # A window that would leave the image is moved inside it, not cut: a repeated
+        # pattern near the border must still show its second copy.
+        side = 2 * (radius + half) + 1
+        if side > ww or side > hw:
+            continue
+        x0 = min(max(px - radius - half, 0), ww - side)
+        y0 = min(max(py - radius - half, 0), hw - side)
+        x1, y1 = x0 + side, y0 + side
+        if cv2.meanStdDev(tpl)[1][0, 0] < MIN_TEMPLATE_STD:
+            flat[i] = True
+            continue
+        surface = cv2.matchTemplate(warped[y0:y1, x0:x1], tpl, cv2.TM_CCOEFF_NORMED)
+        # Position of the prediction in the surface (top-left template corner convention).
+        centre = (expect[i, 0] - half - x0, expect[i, 1] - half - y0)
+        b, s, d = _peaks(surface, centre)
+        best[i] = b
+        ratio[i] = s / b if b > 0 else np.inf
+        dist[i] = d
+    return best, ratio, dist, flat
+
+
+def uniqueness(
+    ref_gray: np.ndarray,
+    mov_gray: np.ndarray,
+    reference: np.ndarray,
+    moving: np.ndarray,
+    homography: np.ndarray | None,
+) -> UniquenessResult:
+    """Correlation check of conjugate pairs on a fine and a coarse scale.
+
+    The moving image is resampled into the reference frame by ``homography`` (reference ->
+    moving, the matcher's global prior), so the patches compare with little distortion; each
+    pair's moving point is mapped there too. At each scale the reference patch of the pair is
+    correlated (zero-mean normalized cross-correlation) over a window of the resampled image
+    centred on that point. A pair is kept when, at both scales, the best peak lies within
+    :data:`AGREEMENT_PX` of the point and no other local maximum reaches
+    :data:`AMBIGUITY_RATIO` of the best.
+
+    Parameters
+    ----------
+    ref_gray, mov_gray : ndarray of uint8
+        Grey images (photometrically normalised if the matcher did so).
+    reference, moving : ndarray, shape (N, 2)
+        Pairs in pixels of each image.
+    homography : ndarray, shape (3, 3), optional
+        ``x_mov ~ H x_ref``; the identity when None.
+
+    Returns
+    -------
+    UniquenessResult
+        Pairs whose windows leave the image at a scale are judged on the other scale alone.
+    """
+    ref_pts = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    mov_pts = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
+    n = len(ref_pts)
+    H = np.eye(3) if homography is None else np.asarray(homography, dtype=np.float64)
+    h, w = ref_gray.shape
+    warped = cv2.warpPerspective(
+        mov_gray, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+    )
+    q = np.column_stack([mov_pts, np.ones(n)]) @ np.linalg.inv(H).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pred = q[:, :2] / q[:, 2:3]
+    pred = np.where(np.isfinite(pred), pred, -1e6)
+
+    levels = [(ref_gray, warped, 1.0, FINE_TEMPLATE, FINE_RADIUS)]
+    a, b, scale = ref_gray, warped, 1.0
+    while max(a.shape) > COARSE_SIDE or scale == 1.0:
+        for _ in range(2):
+            a, b, scale = cv2.pyrDown(a), cv2.pyrDown(b), scale / 2
+        levels.append((a, b, scale, COARSE_TEMPLATE, COARSE_RADIUS))
+    checked = np.zeros(n, bool)
+    flat = np.zeros(n, bool)
+    disagree = np.zeros(n, bool)
+    ratio = np.full(n, -np.inf)
+    peak = np.full(n, np.nan)
+    for a, b, scale, template, radius in levels:
+        best_s, ratio_s, dist_s, flat_s = _check_scale(
+            a, b, (ref_pts + 0.5) * scale - 0.5, (pred + 0.5) * scale - 0.5, template, radius
+        )
+        done = np.isfinite(best_s)
+        if scale == 1.0:
+            peak = best_s
+        checked |= done
+        flat |= flat_s
+        disagree |= done & (dist_s > AGREEMENT_PX)
+        ratio = np.where(done, np.fmax(ratio, ratio_s), ratio)
+    ratio[~checked] = np.nan
+    cause = np.full(n, "", dtype=object)
+    cause[~checked] = "unverifiable"
+    cause[~checked & flat] = "low texture"
+    cause[checked & disagree] = "disagreement"
+    cause[checked & (ratio >= AMBIGUITY_RATIO)] = "ambiguous"
+    return UniquenessResult(ok=cause == "", cause=cause, peak=peak, ratio=ratio)
+
+
+def neighbour_outliers(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    k: int = 10,
+    min_px: float = 3.0,
+    factor: float = 4.0,
+    rounds: int = 2,
+) -> np.ndarray:
+    """Pairs that the affine map of their nearest neighbours contradicts.
+
+    For every pair, an affine map reference -> moving is fitted by least squares to its ``k``
+    nearest neighbours in the reference image (not the pair itself) and predicts its moving
+    point (the fit is trimmed, so one wrong neighbour does not bend it). The pair is an outlier
+    when the prediction misses by more than ``min_px`` pixels and by more than ``factor`` times
+    the median miss of the same map on its neighbours, and fewer than two neighbours move like
+    it (displacements within ``min_px`` or 10 % of their distance): a pair just beyond a depth
+    step, which the majority's map misses, has the neighbours of its own side for witnesses.
+    The test is repeated ``rounds`` times without the outliers found so far.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, shape (N, 2)
+        Pairs in pixels.
+    k : int
+        Neighbours per fit (at least 3).
+    min_px, factor : float
+        Absolute (pixels) and relative thresholds.
+    rounds : int
+        Passes.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the outliers.
+    """
+    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros(len(ref), bool)
+    for _ in range(rounds):
+        idx = np.flatnonzero(~out)
+        kk = min(k, len(idx) - 1)
+        if kk < 4:
+            break
+        r, m = ref[idx], mov[idx]
+        _, nb = cKDTree(r).query(r, kk + 1)
+        nb = nb[:, 1:]  # the point itself is not its own witness
+        centre = r[nb].mean(axis=1, keepdims=True)
+        X = np.concatenate([r[nb] - centre, np.ones((len(r), kk, 1))], axis=2)  # (n, kk, 3)
+        Y = m[nb]
+        # Trimmed least squares: a wrong neighbour must not bend the map that judges the pair.
+        weight = np.ones((len(r), kk))
+        for _ in range(2):
+            A = _weighted_affine(X, Y, weight)
+            res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+            spread = np.median(res, axis=1, keepdims=True)
+            weight = (res <= np.maximum(min_px, 2.5 * spread)).astype(np.float64)
+        A = _weighted_affine(X, Y, weight)
+        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+        spread = np.median(res, axis=1)
+        xs = np.concatenate([r - centre[:, 0], np.ones((len(r), 1))], axis=1)
+        miss = np.linalg.norm(np.einsum("ni,nij->nj", xs, A) - m, axis=1)
+        # Support: neighbours moving like the pair (up to a 10 % strain over their distance).
+        # Points beyond a depth step have their own side's neighbours for witnesses.
+        disp = m - r
+        gap = np.linalg.norm(disp[nb] - disp[:, None, :], axis=2)
+        reach = np.maximum(min_px, 0.1 * np.linalg.norm(r[nb] - r[:, None, :], axis=2))
+        support = np.count_nonzero(gap <= reach, axis=1)
+        bad = (miss > min_px) & (miss > factor * spread) & (support < 2)
+        if not np.any(bad):
+            break
+        out[idx[bad]] = True
+    return out
+
+
+def _weighted_affine(X: np.ndarray, Y: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Batched weighted least-squares affine maps ``Y ~ X A``, ``A`` of shape (n, 3, 2)."""
+    Xw = X * weight[:, :, None]
+    XtX = np.einsum("nki,nkj->nij", Xw, X) + 1e-6 * np.eye(3)
+    XtY = np.einsum("nki,nkj->nij", Xw, Y)
+    return np.linalg.solve(XtX, XtY)
