@@ -58,3 +58,19 @@ class UnsupportedMediaError(InputError):
 
 class ImageTooLargeError(InputError):
     """The image has more pixels (or a longer side) than allowed; refused before decoding."""
+
+
+class UnreliableResultError(RegistrationError):
+    """The registration ran but its quality verdict is ``unreliable`` and the caller asked for
+    such a result to fail (option ``on_unreliable="fail"``).
+
+    Parameters
+    ----------
+    quality : dict
+        The verdict, its reasons and figures (:meth:`core.quality.Quality.to_dict`).
+    """
+
+    def __init__(self, quality: dict) -> None:
+        reasons = "; ".join(quality.get("reasons", [])) or "no reason recorded"
+        super().__init__(f"the registration is unreliable: {reasons}")
+        self.quality = quality

@@ -221,6 +221,12 @@ def mesh_document(result: RegistrationResult) -> dict:
             {"removed": list(s.removed), "added": list(s.added), "delta": s.delta}
             for s in result.search.steps
         ],
+        "extrapolated": result.extrapolated.tolist(),
+        "quality": result.quality.to_dict(),
+        "triangle_scores": [
+            None if not np.isfinite(v) else round(float(v), 4)
+            for v in result.quality.triangle_scores
+        ],
         "parameters": result.options.model_dump(),
         "triangulation": result.triangulation.to_dict(),
         "matching": result.points.to_dict() if result.points is not None else None,

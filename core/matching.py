@@ -639,6 +639,10 @@ def _epipolar(
     return model, residuals <= model.threshold, residuals
 
 
+_CHECK_CAUSES = ("ambiguous", "disagreement", "low texture", "unverifiable")
+_MATCHER_NAMES = {"lk": "tracking", "sift": "SIFT"}
+
+
 def _verify(matches: Matches, images: tuple[np.ndarray, np.ndarray], seed: int) -> Matches:
     """Drop the pairs :func:`core.reliability.uniqueness` finds ambiguous or contradicted."""
     prior = matches.prior
@@ -665,6 +669,17 @@ def _filter_matches(
         matches = matches.subset(keep)
         matches.rejected["spread"] = matches.rejected.get("spread", 0) + n - len(keep)
     matches = _verify(matches, images, options.seed)
+    needed = MIN_PAIRS[options.epipolar_model] if options.epipolar_filter else MIN_MESH_PAIRS
+    if len(matches.reference) < needed:
+        dropped = {c: matches.rejected.get(c, 0) for c in _CHECK_CAUSES}
+        listed = ", ".join(f"{c} {n}" for c, n in dropped.items() if n) or "none dropped"
+        found = len(matches.reference) + sum(dropped.values())
+        raise NotEnoughPointsError(
+            len(matches.reference),
+            needed,
+            f"the uniqueness check of the {found} pairs {_MATCHER_NAMES[matches.source]} "
+            f"found ({listed})",
+        )
     if not options.epipolar_filter:
         matches.counts["epipolar"] = len(matches.reference)
         residuals = np.full(len(matches.reference), np.nan)
@@ -765,7 +780,10 @@ def _automatic(
                 # earlier attempt.
                 result = max(found, key=lambda a: (_is_enough(a, options), _size(a)))
             else:
-                result = max(attempts, key=lambda e: e.found)  # the attempt that came closest
+                closest = max(attempts, key=lambda e: e.found)
+                result = NotEnoughPointsError(
+                    closest.found, closest.needed, "; ".join(a.stage for a in attempts)
+                )
             if (
                 not isinstance(result, NotEnoughPointsError)
                 and not isinstance(tracked, NotEnoughPointsError)
@@ -778,6 +796,13 @@ def _automatic(
             ):
                 result[0].counts["lk_consistent"] = tracked.found
     if isinstance(result, NotEnoughPointsError):
+        if "uniqueness check" in result.stage:
+            raise NotEnoughPointsError(
+                result.found,
+                result.needed,
+                f"{result.stage}: the images share no unambiguous detail (a repeated pattern, "
+                "a change too strong to match, or different scenes)",
+            )
         raise result
     matches, model, residuals = result
     keep = spread_points(matches.reference, matches.score, options.max_points, options.min_distance)

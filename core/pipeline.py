@@ -10,12 +10,14 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from core.errors import InputError
+from core.errors import InputError, UnreliableResultError
+from core.extent import frame_vertices
 from core.imaging import check_image
 from core.matching import ConjugatePoints, find_conjugate_points
 from core.mesh import Mesh
 from core.optimize import SearchResult, greedy_search
 from core.options import RegistrationOptions
+from core.quality import Quality, assess
 from core.similarity import (
     ScoringImages,
     mutual_information,
@@ -56,6 +58,9 @@ class RegistrationResult:
         Seconds spent per stage and in total.
     reference_size, moving_size : (int, int)
         ``(width, height)`` of the two images.
+    quality : Quality
+        Verdict (``good``, ``doubtful``, ``unreliable``), its reasons and figures, and a score
+        per final triangle.
     """
 
     reference_vertices: np.ndarray
@@ -70,6 +75,12 @@ class RegistrationResult:
     timings: dict[str, float]
     reference_size: tuple[int, int]
     moving_size: tuple[int, int]
+    quality: Quality
+
+    @property
+    def extrapolated(self) -> np.ndarray:
+        """Per vertex, whether its moving position was extrapolated (``extent="frame"``)."""
+        return self.triangulation.extrapolated
 
     def summary(self) -> str:
         """One line: points, triangles, swaps, global MI before and after, time."""
@@ -80,7 +91,7 @@ class RegistrationResult:
             f"[{self.options.optimizer}/{self.options.cost}], "
             f"MI {s.initial_mi:.4f} -> {s.final_mi:.4f} bits, "
             f"NMI {s.initial_nmi:.4f} -> {s.final_nmi:.4f}, "
-            f"{self.timings['total_s']:.2f} s"
+            f"{self.timings['total_s']:.2f} s, quality {self.quality.verdict}"
         )
 
 
@@ -140,6 +151,8 @@ def register(
     ------
     InputError
         Invalid images, points or options, or too few consistent conjugate points.
+    UnreliableResultError
+        The verdict is ``unreliable`` and ``options.on_unreliable`` is ``"fail"``.
     """
     opts = parse_options(options)
     check_image(reference, "reference")
@@ -171,7 +184,14 @@ def register(
 
     t = time.perf_counter()
     report("triangulating", 0.0)
-    mesh, tri_report = initial_mesh(conjugate.reference, conjugate.moving, opts.min_triangle_area)
+    ref_pts, mov_pts = conjugate.reference, conjugate.moving
+    extrapolated = np.zeros(len(ref_pts), bool)
+    if opts.extent == "frame":
+        border_ref, border_mov = frame_vertices(ref_pts, mov_pts, reference.shape[:2])
+        ref_pts = np.concatenate([ref_pts, border_ref])
+        mov_pts = np.concatenate([mov_pts, border_mov])
+        extrapolated = np.concatenate([extrapolated, np.ones(len(border_ref), bool)])
+    mesh, tri_report = initial_mesh(ref_pts, mov_pts, opts.min_triangle_area, extrapolated)
     initial_triangles = mesh.triangles
     timings["triangulation_s"] = time.perf_counter() - t
     report("triangulating", 1.0)
@@ -206,8 +226,25 @@ def register(
         moving, mesh.reference, mesh.moving, final_triangles, reference.shape[:2]
     )
     timings["rendering_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    quality = assess(
+        images,
+        mesh.reference,
+        mesh.moving,
+        final_triangles,
+        tri_report.extrapolated,
+        counts=conjugate.counts,
+        rejected=conjugate.rejected,
+        mi=(search.initial_mi, search.final_mi),
+        nmi=(search.initial_nmi, search.final_nmi),
+        mapped_coverage=float(np.count_nonzero(registered[:, :, -1])) / registered[:, :, -1].size,
+    )
+    timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t_start
     report("rendering", 1.0)
+    if quality.verdict == "unreliable" and opts.on_unreliable == "fail":
+        raise UnreliableResultError(quality.to_dict())
 
     return RegistrationResult(
         reference_vertices=mesh.reference,
@@ -222,4 +259,5 @@ def register(
         timings=timings,
         reference_size=(reference.shape[1], reference.shape[0]),
         moving_size=(moving.shape[1], moving.shape[0]),
+        quality=quality,
     )

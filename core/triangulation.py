@@ -28,12 +28,15 @@ class TriangulationReport:
         [k, l]}`` or ``{"action": "remove", "triangle": [a, b, c], "reason": ...}``.
     unrepaired : int
         Patch reversals left when the repair budget ran out (0 in practice).
+    extrapolated : ndarray of bool, shape (N,)
+        Per mesh vertex: its moving position was extrapolated, not measured.
     """
 
     duplicates_removed: int = 0
     small_triangles_removed: int = 0
     repairs: list[dict] = field(default_factory=list)
     unrepaired: int = 0
+    extrapolated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
     def to_dict(self) -> dict:
         """JSON-able form."""
@@ -42,6 +45,7 @@ class TriangulationReport:
             "small_triangles_removed": self.small_triangles_removed,
             "patch_reversal_repairs": self.repairs,
             "unrepaired_patch_reversals": self.unrepaired,
+            "extrapolated_vertices": int(np.count_nonzero(self.extrapolated)),
         }
 
 
@@ -51,13 +55,20 @@ def deduplicate(reference: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, 
     Returns the kept reference points, moving points (quantized, original order) and the
     number dropped.
     """
+    ref, mov, keep = _deduplicate(reference, moving)
+    return ref, mov, int((~keep).sum())
+
+
+def _deduplicate(
+    reference: np.ndarray, moving: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ref = quantize(reference).reshape(-1, 2)
     mov = quantize(moving).reshape(-1, 2)
     _, first_ref = np.unique(ref, axis=0, return_index=True)
     _, first_mov = np.unique(mov, axis=0, return_index=True)
     keep = np.zeros(len(ref), dtype=bool)
     keep[np.intersect1d(first_ref, first_mov)] = True
-    return ref[keep], mov[keep], int((~keep).sum())
+    return ref[keep], mov[keep], keep
 
 
 def delaunay_triangles(points: np.ndarray) -> np.ndarray:
@@ -125,19 +136,27 @@ def repair_patch_reversals(mesh: Mesh, max_actions: int | None = None) -> tuple[
 
 
 def initial_mesh(
-    reference_points: np.ndarray, moving_points: np.ndarray, min_triangle_area: float
+    reference_points: np.ndarray,
+    moving_points: np.ndarray,
+    min_triangle_area: float,
+    extrapolated: np.ndarray | None = None,
 ) -> tuple[Mesh, TriangulationReport]:
     """Build the mesh the search starts from.
 
     Delaunay triangulation of the reference points (duplicates removed), the same triangles on
     the moving points, triangles with reference area below ``min_triangle_area`` (px^2)
     discarded, then patch reversals repaired (:func:`repair_patch_reversals`).
+    ``extrapolated`` flags the pairs whose moving position was not measured; the report carries
+    the flags of the vertices kept.
     """
-    ref, mov, dropped = deduplicate(reference_points, moving_points)
+    ref, mov, kept = _deduplicate(reference_points, moving_points)
+    flags = np.zeros(len(kept), bool) if extrapolated is None else np.asarray(extrapolated, bool)
     tris = delaunay_triangles(ref)
     areas = triangle_areas(ref[tris])
     keep = (areas >= min_triangle_area) & (areas > 0)
-    report = TriangulationReport(duplicates_removed=dropped)
+    report = TriangulationReport(
+        duplicates_removed=int((~kept).sum()), extrapolated=flags[kept].copy()
+    )
     report.small_triangles_removed = int((~keep).sum())
     mesh = Mesh(ref, mov, tris[keep])
     report.repairs, report.unrepaired = repair_patch_reversals(mesh)

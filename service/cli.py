@@ -26,6 +26,8 @@ RESULT_FILES = {"mesh": "mesh.json", "registered.png": "registered.png",
                 "convergence": "convergence.json"}
 """Result route of a job -> file name in the output directory."""
 FINISHED = ("successful", "failed", "dismissed")
+UNRELIABLE_EXIT = 3
+"""Exit status of a registration refused as unreliable (``--on-unreliable fail``)."""
 
 
 class CommandError(Exception):
@@ -129,7 +131,7 @@ class ProgressBar:
 
 def cmd_register(args: argparse.Namespace) -> int:
     """Register two image files locally and write the three result files."""
-    from core.errors import InputError
+    from core.errors import InputError, UnreliableResultError
     from core.io import load_points, read_image, write_outputs
     from core.pipeline import STAGES, register
 
@@ -147,6 +149,8 @@ def cmd_register(args: argparse.Namespace) -> int:
         points = load_points(Path(args.points).read_bytes()) if args.points else None
         result = register(reference, moving, points=points, options=options, progress=progress)
         write_outputs(result, args.out)
+    except UnreliableResultError as exc:
+        raise CommandError(str(exc), UNRELIABLE_EXIT) from None
     except InputError as exc:
         field = getattr(exc, "field", None)
         message = f"{field}: {exc}" if field and field not in str(exc) else str(exc)
@@ -223,7 +227,8 @@ def cmd_submit(args: argparse.Namespace) -> int:
         if job["status"] != "successful":
             error = job.get("error") or {}
             reason = error.get("detail") or job.get("message") or job["status"]
-            raise CommandError(f"job {job['id']} {job['status']}: {reason}", 1)
+            code = UNRELIABLE_EXIT if error.get("type", "").endswith(":unreliable-result") else 1
+            raise CommandError(f"job {job['id']} {job['status']}: {reason}", code)
         for route, filename in RESULT_FILES.items():
             target = out / filename
             with client.stream("GET", f"{location}/{route}") as result:

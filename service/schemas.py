@@ -197,6 +197,16 @@ class StatusInfo(BaseModel):
         "automatically.",
         examples=[True],
     )
+    quality: dict[str, Any] | None = Field(
+        None,
+        description="Verdict on the result, once it exists: 'verdict' (good, doubtful or "
+        "unreliable), 'reasons' (why it is not good) and the figures behind it (points kept "
+        "and dropped by cause, inlier share, coverage of the reference frame, MI and NMI "
+        "before and after, global agreement peak, share of the textured area whose local "
+        "consistency is low). Also set on a job failed as unreliable (option on_unreliable).",
+        examples=[{"verdict": "good", "reasons": [], "points": 412, "inlier_share": 0.84,
+                   "measured_coverage": 0.68, "mesh_coverage": 1.0, "global_peak": 0.61}],
+    )
     links: list[Link] = Field(
         description="The job itself and, once successful, every result with its media type."
     )

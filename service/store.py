@@ -26,6 +26,7 @@ from sqlalchemy import (
     create_engine,
     event,
     func,
+    inspect,
     select,
     text,
     update,
@@ -86,6 +87,7 @@ class JobRow(Base):
     progress: Mapped[float] = mapped_column(Float, default=0.0)
     message: Mapped[str | None] = mapped_column(Text)
     error: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    quality: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     options: Mapped[dict[str, Any]] = mapped_column(JSON)
     has_points: Mapped[bool] = mapped_column(Boolean, default=False)
     idempotency_key: Mapped[str | None] = mapped_column(String(255), unique=True)
@@ -115,6 +117,7 @@ class Job:
     progress: float
     message: str | None
     error: dict[str, Any] | None
+    quality: dict[str, Any] | None
     options: dict[str, Any]
     has_points: bool
     idempotency_key: str | None
@@ -190,8 +193,15 @@ class JobStore:
         return cls(make_engine(url))
 
     def create_schema(self) -> None:
-        """Create the tables if they do not exist."""
+        """Create the tables if they do not exist, and add the nullable columns a database made
+        by an earlier version lacks (``quality``)."""
         Base.metadata.create_all(self.engine)
+        present = {c["name"] for c in inspect(self.engine).get_columns(JobRow.__tablename__)}
+        with self.engine.begin() as conn:
+            for column in JobRow.__table__.columns:
+                if column.name not in present and column.nullable:
+                    kind = column.type.compile(dialect=self.engine.dialect)
+                    conn.execute(text(f"ALTER TABLE jobs ADD COLUMN {column.name} {kind}"))
 
     def dispose(self) -> None:
         """Close the connections of the engine."""
@@ -410,6 +420,7 @@ class JobStore:
         status: JobStatus,
         message: str | None,
         error: dict[str, Any] | None = None,
+        quality: dict[str, Any] | None = None,
     ) -> bool:
         """End ``owner``'s attempt with ``status`` (successful or failed); False if the job is
         no longer running under this owner."""
@@ -418,6 +429,7 @@ class JobStore:
             "status": status.value,
             "message": message,
             "error": error,
+            "quality": quality,
             "finished": now,
             "updated": now,
             "lease_owner": None,

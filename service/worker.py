@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from core.errors import InputError
+from core.errors import InputError, UnreliableResultError
 from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
 from service.settings import Settings
@@ -286,8 +286,8 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     log.info("job %s: attempt %d started by %s", job_id, job.attempts, owner)
     reporter = ProgressReporter(context, job_id, owner)
 
-    def fail(error: dict[str, Any]) -> str:
-        if store.finish(job_id, owner, JobStatus.failed, error["detail"], error):
+    def fail(error: dict[str, Any], quality: dict[str, Any] | None = None) -> str:
+        if store.finish(job_id, owner, JobStatus.failed, error["detail"], error, quality):
             return JobStatus.failed.value
         return _settle_lost(job_id, context)
 
@@ -309,7 +309,9 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         reporter.beat()  # still ours (not dismissed) before the results become visible?
         storage.publish_results(job_id, work)
         summary = result.summary()
-        if store.finish(job_id, owner, JobStatus.successful, summary):
+        if store.finish(
+            job_id, owner, JobStatus.successful, summary, quality=result.quality.to_dict()
+        ):
             log.info("job %s: successful: %s", job_id, summary)
             return JobStatus.successful.value
         return _settle_lost(job_id, context)
@@ -326,6 +328,10 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         return JobStatus.accepted.value
     except TimeLimitExceeded as exc:
         return fail(_problem("time-limit-exceeded", "Time limit exceeded", 500, str(exc)))
+    except UnreliableResultError as exc:
+        return fail(
+            _problem("unreliable-result", "Registration unreliable", 422, str(exc)), exc.quality
+        )
     except InputError as exc:
         field = getattr(exc, "field", None)
         detail = f"{field}: {exc}" if field else str(exc)

@@ -77,6 +77,7 @@ def status_info(job: Job, request: Request) -> StatusInfo:
         updated=job.updated,
         options=job.options,
         has_points=job.has_points,
+        quality=job.quality,
         links=links,
         error=job.error,  # type: ignore[arg-type]
     )

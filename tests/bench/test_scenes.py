@@ -9,10 +9,12 @@ from scipy import ndimage
 from scipy.spatial import Delaunay
 
 from bench.metrics import endpoint_error, mesh_correctness
-from bench.scenes import FAMILIES, backproject, make_scene, project
+from bench.scenes import FAMILIES, backproject, make_scene, make_unrelated_pair, project
 
 SIZE = (160, 120)
-POLYHEDRAL = tuple(f for f in FAMILIES if f != "plane")
+SINGLE_PLANE = ("plane", "checker")
+POLYHEDRAL = tuple(f for f in FAMILIES if f not in SINGLE_PLANE)
+HARD = ("checker", "checker_box", "occluder")
 
 
 @pytest.fixture(scope="module")
@@ -231,3 +233,159 @@ def test_bad_arguments_are_refused():
         make_scene("box", 0, camera="fisheye")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         make_scene("box", 0, radiometric="sepia")  # type: ignore[arg-type]
+    for overlap in (0.0, 1.5, -0.2):
+        with pytest.raises(ValueError, match="overlap"):
+            make_scene("box", 0, overlap=overlap)
+
+
+# --------------------------------------------------------------------------------------------
+# Hard cases: periodic texture, occluders, partial overlap, unrelated pairs
+# --------------------------------------------------------------------------------------------
+
+
+def _warp_difference(s) -> np.ndarray:
+    """|moving warped by the truth - reference| on covisible pixels away from face boundaries
+    and from texture edges (at 160x120 the tiles are 4-6 px: resampling their edges is not a
+    truth error; a truth error shows as soon as a tile interior lands on a tile edge)."""
+    warped = cv2.remap(s.moving.astype(np.float32), s.truth_x.astype(np.float32),
+                       s.truth_y.astype(np.float32), cv2.INTER_LINEAR)
+    inner = ndimage.binary_erosion(s.covisible, iterations=2)
+    inner &= ndimage.morphological_gradient(s.face, size=5) == 0
+    ref = s.reference.astype(np.float32)
+    inner &= ndimage.maximum_filter(ref, 3) - ndimage.minimum_filter(ref, 3) < 10
+    assert inner.sum() >= 100
+    return np.abs(warped - ref)[inner]
+
+
+@pytest.mark.parametrize(
+    ("family", "kw"),
+    [("checker", {}), ("checker_box", {}), ("occluder", {}),
+     ("occluder", {"camera": "perspective"}), ("city", {"overlap": 0.5}),
+     ("checker", {"overlap": 0.5, "camera": "perspective"})],
+)
+def test_truth_carries_the_reference_onto_the_moving_image(scenes, family, kw):
+    """Same light, no noise: the moving image sampled at the truth is the reference image."""
+    s = scenes(family, radiometric="none", noise=0.0, **kw)
+    w, h = SIZE
+    tx, ty = s.truth_x[s.covisible], s.truth_y[s.covisible]
+    assert tx.min() >= 0 and tx.max() <= w - 1 and ty.min() >= 0 and ty.max() <= h - 1
+    # The moving view sees the same plane at the truth.
+    col, row = np.rint(tx).astype(int), np.rint(ty).astype(int)
+    assert np.mean(s.face_moving[row, col] == s.face[s.covisible]) > 0.97
+    diff = _warp_difference(s)
+    assert np.median(diff) < 1.0, family
+    assert np.mean(diff) < 1.5, family  # a truth 1.5 px off gives 1.8-3.6
+
+
+def _secondary_peak(image: np.ndarray) -> tuple[float, float]:
+    """Normalised autocorrelation of an image: best peak away from zero shift, and the shortest
+    shift (pixels) of a peak above 0.8."""
+    img = image.astype(np.float32)
+    h, w = img.shape
+    oy, ox = h // 4, w // 4
+    ncc = cv2.matchTemplate(img, img[oy:oy + h // 2, ox:ox + w // 2], cv2.TM_CCOEFF_NORMED)
+    peak = ncc == ndimage.maximum_filter(ncc, size=3)
+    peak[[0, -1], :] = False
+    peak[:, [0, -1]] = False
+    dy, dx = np.nonzero(peak)
+    shift = np.hypot(dx - ox, dy - oy)
+    value = ncc[dy, dx]
+    away = shift > 1.5
+    strong = away & (value > 0.8)
+    return float(value[away].max()), float(shift[strong].min(initial=np.inf))
+
+
+def test_checker_texture_is_periodic(scenes):
+    """A matcher one period off must look right: strong autocorrelation peaks 20-60 px apart at
+    640x480 (5-15 px at 160x120); a non-periodic scene has none."""
+    for family in ("checker", "checker_box"):
+        best, period = _secondary_peak(scenes(family).reference)
+        assert best > 0.5, family
+        assert 4.0 <= period <= 16.0, (family, period)
+    best, _ = _secondary_peak(scenes("checker").moving)
+    assert best > 0.9
+    assert scenes("checker").polygons[0].material == "tiles"
+    best, period = _secondary_peak(scenes("plane").reference)
+    assert best < 0.5 and period == np.inf
+
+
+def test_occluders_slide_over_the_facade(scenes):
+    s = scenes("occluder")
+    names = {p.name.split(".")[0] for p in s.planes}
+    assert "facade" in names and "ground" in names
+    occluders = {n for n in names if n.startswith(("pillar", "kiosk"))}
+    assert 2 <= len(occluders) <= 4
+    facade = next(i for i, p in enumerate(s.planes) if p.name == "facade.wall0")
+    front = [i for i, p in enumerate(s.planes) if p.name.split(".")[0] in occluders]
+    # The occluders are seen in front of the facade in both views.
+    assert np.isin(s.face, front).sum() > 20 and np.isin(s.face_moving, front).sum() > 20
+    assert (s.face == facade).mean() > 0.3
+    # Parallax: facade points seen in the reference are hidden by an occluder in the moving
+    # view (inside the image, not covisible, an occluder at the truth).
+    sel = (s.face == facade) & ~s.covisible & np.isfinite(s.truth_x)
+    tx, ty = s.truth_x[sel], s.truth_y[sel]
+    w, h = SIZE
+    inside = (tx >= 0) & (tx <= w - 1) & (ty >= 0) & (ty <= h - 1)
+    hidden = np.isin(s.face_moving[np.rint(ty[inside]).astype(int),
+                                   np.rint(tx[inside]).astype(int)], front)
+    assert hidden.sum() > 10
+
+
+@pytest.mark.parametrize("family", ["city", "lshape", "occluder", "checker"])
+def test_partial_overlap(scenes, family):
+    s = scenes(family, overlap=0.5, radiometric="none", noise=0.0)
+    assert 0.3 <= s.info["covisible_fraction"] <= 0.7
+    assert s.info["overlap_requested"] == 0.5 and s.info["overlap_shift_px"] > 0
+    assert s.covisible.sum() == pytest.approx(
+        s.info["covisible_fraction"] * (s.face >= 0).sum())
+    # The point sample follows the overlap: interior points are all covisible.
+    assert len(s.points_reference) >= 6
+    col, row = np.rint(s.points_reference_exact[~s.is_corner]).astype(int).T
+    assert s.covisible[row, col].all()
+    # Default: the usual well-posed pair, no shift.
+    assert scenes(family).info["overlap_requested"] is None
+    assert scenes(family).info["overlap_shift_px"] == 0.0
+
+
+def test_unrelated_pair_has_no_truth():
+    s = make_unrelated_pair(3, size=SIZE)
+    h, w = SIZE[1], SIZE[0]
+    assert s.family == "unrelated" and s.info["unrelated"] is True
+    assert s.reference.shape == (h, w) and s.moving.shape == (h, w)
+    assert np.all(np.isnan(s.truth_x)) and np.all(np.isnan(s.truth_y))
+    assert not s.covisible.any() and s.info["covisible_fraction"] == 0.0
+    assert np.all(s.face_moving == -1) and (s.face >= 0).mean() > 0.5
+    for name in ("points_reference", "points_moving", "points_reference_exact",
+                 "points_moving_exact"):
+        assert getattr(s, name).shape == (0, 2), name
+    assert s.points_world.shape == (0, 3) and s.points_plane.shape == (0,)
+    assert s.vertex_planes(np.zeros((2, 2))).all()
+    ref_family, mov_family = s.info["reference_family"], s.info["moving_family"]
+    assert ref_family != mov_family and s.info["moving_seed"] != 3
+    # The views are ordinary scene views, from two different scenes.
+    same = make_scene(ref_family, 3, size=SIZE)
+    np.testing.assert_array_equal(s.reference, same.reference)
+    np.testing.assert_array_equal(s.face, same.face)
+    assert not np.array_equal(s.moving, same.moving)
+    # Explicit families, and options passed through to both scenes.
+    t = make_unrelated_pair(3, size=(64, 48), families=("box", "box"), color="bgr")
+    assert t.info["reference_family"] == t.info["moving_family"] == "box"
+    assert t.reference.shape == (48, 64, 3) and t.moving.shape == (48, 64, 3)
+    assert t.info["moving_seed"] != 3 and not np.array_equal(t.reference, t.moving)
+
+
+def test_hard_cases_are_deterministic():
+    kw = {"size": (64, 48)}
+    pairs = [
+        (make_scene("occluder", 5, **kw), make_scene("occluder", 5, **kw)),
+        (make_scene("checker_box", 5, overlap=0.4, **kw),
+         make_scene("checker_box", 5, overlap=0.4, **kw)),
+        (make_unrelated_pair(5, **kw), make_unrelated_pair(5, **kw)),
+    ]
+    for a, b in pairs:
+        for name in ("reference", "moving", "face", "truth_x", "truth_y", "covisible",
+                     "face_moving", "points_reference", "points_moving"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name),
+                                          err_msg=f"{a.family} {name}")
+        assert a.info == b.info
+    assert not np.array_equal(make_scene("occluder", 6, **kw).reference, pairs[0][0].reference)

@@ -92,7 +92,9 @@ def test_points_as_csv_form_field_and_options_as_file_part(server: Server, pair:
         assert done["status"] == "successful", done
         assert done["options"]["optimizer"] == "none"
         mesh = client.get(f"/v1/jobs/{done['id']}/mesh").json()
-        assert len(mesh["reference_vertices"]) == len(pair.reference_points)
+        measured = [not e for e in mesh["extrapolated"]]
+        assert len(mesh["reference_vertices"]) == len(mesh["extrapolated"])
+        assert sum(measured) == len(pair.reference_points)
 
 
 def test_job_that_cannot_be_registered_fails_with_a_problem(server: Server, pair: Pair) -> None:
