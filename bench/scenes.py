@@ -6,6 +6,25 @@ a moving camera. Because the geometry is known exactly, every reference pixel ha
 a known scene plane and a known position in the moving image, and every conjugate point pair is a
 true correspondence.
 
+Three families are hard cases for automatic matching and for verdicts on a registration:
+
+``"checker"``
+    a tiled plaza: one ground plane covered by a checkerboard of tiles 15-25 px wide at 640x480
+    (the pattern repeats every 20-35 px along the tile diagonals, 30-50 px along the rows, less
+    where foreshortened), with only a very weak non-periodic component (about 1 % of the
+    contrast), so that a match one period off looks as good as the true one.
+``"checker_box"``
+    the same tiled ground with one or two boxes standing on it.
+``"occluder"``
+    a building facade (brick wall with a window grid) seen roughly frontally, with 2-4 thin
+    occluders (pillars, a kiosk) standing in front of it: they slide over the facade between the
+    views (occlusion boundaries, disoccluded areas).
+
+Two more hard cases are options rather than families: ``make_scene(..., overlap=0.5)`` shifts the
+moving view sideways so that only about that fraction of the reference view is covisible (wide
+baseline, partial overlap), and :func:`make_unrelated_pair` pairs the views of two unrelated scenes
+(no pixel corresponds).
+
 Conventions
 -----------
 * Pixel coordinates: x to the right, y down, (0, 0) is the centre of the top-left pixel; image
@@ -37,7 +56,8 @@ light). The ``radiometric`` option changes the moving view only:
 
 All randomness comes from ``numpy.random.default_rng`` streams derived from ``(family, seed)``:
 the same arguments give the same scene, bit for bit. Geometry, cameras, textures and radiometry do
-not depend on the image size; the image noise and the sampled conjugate points do.
+not depend on the image size; the image noise and the sampled conjugate points do (and so, slightly,
+does the sideways shift chosen for a requested ``overlap``, which is measured on the pixel grid).
 """
 
 from __future__ import annotations
@@ -59,14 +79,20 @@ __all__ = [
     "Scene",
     "backproject",
     "make_scene",
+    "make_unrelated_pair",
     "project",
 ]
 
-FAMILIES: tuple[str, ...] = ("plane", "box", "prism", "gable", "lshape", "open_book", "city")
+FAMILIES: tuple[str, ...] = (
+    "plane", "box", "prism", "gable", "lshape", "open_book", "city",
+    "checker", "checker_box", "occluder",
+)
 """Scene families accepted by :func:`make_scene`.
 
 ``plane`` is one textured plane (a control: any triangulation of exact points is exact under
-affine cameras); the others are polyhedral and produce Delaunay edges that cross creases.
+affine cameras); ``checker`` is one plane too, a periodic tiled plaza (a trap for matchers); the
+others are polyhedral and produce Delaunay edges that cross creases. ``checker``, ``checker_box``
+and ``occluder`` are the hard cases described in the module docstring.
 """
 
 CameraKind = Literal["affine", "perspective"]
@@ -166,7 +192,8 @@ class Polygon:
     name : str
         ``"<object>.<face>"``, e.g. ``"box0.top"``.
     material : str
-        Texture kind: ``ground``, ``crate``, ``wall``, ``roof``, ``top``, ``page`` or ``stripes``.
+        Texture kind: ``ground``, ``crate``, ``wall``, ``roof``, ``top``, ``page``, ``stripes``
+        or ``tiles`` (a periodic checkerboard of tiles).
     """
 
     vertices: np.ndarray
@@ -182,7 +209,8 @@ class Scene:
     Attributes
     ----------
     family, seed : str, int
-        Arguments that generated the scene.
+        Arguments that generated the scene (``family`` is ``"unrelated"`` for
+        :func:`make_unrelated_pair`).
     camera_kind, radiometric : str
         Projection model and radiometric change (see the module docstring).
     reference, moving : ndarray of uint8
@@ -215,8 +243,12 @@ class Scene:
         Plane of each interior point; -1 for polyhedron corners (on two or more planes).
     info : dict
         Generation parameters (``size``, ``noise``, ``blur``, ``color``, ``point_noise``,
-        ``baseline_deg``, ``distance_radii``), the ``scene_radius`` (world units) and the
-        ``covisible_fraction`` of the reference pixels that see the scene.
+        ``baseline_deg``, ``distance_radii``, ``overlap_requested``: the ``overlap`` argument,
+        None by default), the ``scene_radius`` (world units), the ``covisible_fraction`` of the
+        reference pixels that see the scene, ``overlap_shift_px``: the sideways shift (pixels,
+        at the reference depth) given to the moving view for a requested overlap, 0 otherwise,
+        and ``unrelated``: True for :func:`make_unrelated_pair` (which adds its own keys),
+        False otherwise.
 
     Notes
     -----
@@ -696,10 +728,71 @@ def _city(rng: np.random.Generator) -> list[_Face]:
     return faces
 
 
+def _plaza(rng: np.random.Generator) -> list[_Face]:
+    """A square tiled plaza on z = 0, normal up (the whole ``checker`` scene)."""
+    g = rng.uniform(9.0, 11.0)
+    quad = np.array([[-g, -g, 0.0], [g, -g, 0.0], [g, g, 0.0], [-g, g, 0.0]])
+    return [_Face(quad, "ground", "tiles")]
+
+
+def _tiled_boxes(rng: np.random.Generator) -> list[_Face]:
+    """One large or two smaller boxes side by side (``checker_box``; the ground is added later)."""
+    n = int(rng.integers(1, 3))
+    faces: list[_Face] = []
+    for k in range(n):
+        solid = _box(rng, f"box{k}", scale=1.3 if n == 1 else 0.8)
+        # Two boxes of scale 0.8 have half-diagonals below 3.4: 9 units apart they never touch.
+        centre = np.array([(k - (n - 1) / 2) * 9.0, 0.0, 0.0])
+        centre[:2] += rng.uniform(-0.5, 0.5, 2)
+        faces += _place(solid, rng.uniform(-0.6, 0.6), centre)
+    return faces
+
+
+def _pillar(rng: np.random.Generator, name: str) -> list[_Face]:
+    """A thin square pillar (a pole, a lamp post) on z = 0."""
+    w = rng.uniform(0.4, 0.6) / 2
+    fp = np.array([[-w, -w], [w, -w], [w, w], [-w, w]])
+    return _extrusion(fp, rng.uniform(4.5, 8.0), name, "top", "top")
+
+
+def _kiosk(rng: np.random.Generator, name: str) -> list[_Face]:
+    """A small box (a kiosk, a bin) on z = 0."""
+    sx, sy = rng.uniform(2.2, 3.2) / 2, rng.uniform(1.4, 2.0) / 2
+    fp = np.array([[-sx, -sy], [sx, -sy], [sx, sy], [-sx, sy]])
+    return _extrusion(fp, rng.uniform(2.5, 3.2), name, "crate", "top")
+
+
+def _facade_occluders(rng: np.random.Generator) -> list[_Face]:
+    """A building whose facade (y = 0, facing -y) has 2-4 thin occluders standing before it."""
+    length, depth, height = rng.uniform(22.0, 28.0), rng.uniform(4.0, 6.0), rng.uniform(8.0, 11.0)
+    fp = np.array([[-length / 2, 0.0], [length / 2, 0.0], [length / 2, depth],
+                   [-length / 2, depth]])
+    faces = _extrusion(fp, height, "facade", "wall", "top")  # facade.wall0 is the front
+    n = int(rng.integers(2, 5))
+    kiosk = int(rng.integers(n)) if rng.uniform() < 0.6 else -1
+    # Occluders spread along the facade (one per slot), 2.5-6 units in front of it.
+    slots = (np.arange(n) + 0.5) / n - 0.5
+    xs = 0.6 * length * (slots + rng.uniform(-0.25, 0.25, n) / n)
+    for k in range(n):
+        if k == kiosk:
+            solid = _kiosk(rng, "kiosk")
+        else:
+            solid = _pillar(rng, f"pillar{k}")
+        centre = np.array([xs[k], -rng.uniform(2.5, 6.0), 0.0])
+        faces += _place(solid, rng.uniform(-0.3, 0.3), centre)
+    return faces
+
+
 def _family_faces(family: str, rng: np.random.Generator) -> tuple[list[_Face], bool]:
     """Faces of a family and whether it stands on a ground plane."""
     if family == "plane":
         return _sheet(rng), False
+    if family == "checker":
+        return _plaza(rng), False
+    if family == "checker_box":
+        return _tiled_boxes(rng), True
+    if family == "occluder":
+        return _facade_occluders(rng), True
     if family == "open_book":
         return _page_pair(rng), False
     if family == "city":
@@ -708,14 +801,20 @@ def _family_faces(family: str, rng: np.random.Generator) -> tuple[list[_Face], b
     return _place(solid, rng.uniform(0, 2 * np.pi), np.zeros(3)), True
 
 
-def _ground(centre: np.ndarray, radius: float) -> _Face:
+def _ground(centre: np.ndarray, radius: float, material: str = "ground") -> _Face:
     g = 6.0 * radius
     c = centre[:2]
     quad = np.array(
         [[c[0] - g, c[1] - g, 0], [c[0] + g, c[1] - g, 0], [c[0] + g, c[1] + g, 0],
          [c[0] - g, c[1] + g, 0]]
     )
-    return _Face(quad, "ground", "ground")
+    return _Face(quad, "ground", material)
+
+
+# Ground material of the grounded families ("ground" unless listed).
+_GROUND_MATERIAL = {"checker_box": "tiles"}
+# Height of the point the cameras aim at, as a fraction of the scene height (grounded families).
+_TARGET_HEIGHT = {"occluder": 0.5}
 
 
 def _merge_planes(polygons: list[_Face]) -> tuple[tuple[Plane, ...], list[int]]:
@@ -773,10 +872,16 @@ _VIEW = {
     "plane": ((-10.0, 10.0), (-20.0, 20.0)),
     "open_book": ((0.0, 15.0), (-15.0, 15.0)),
     "city": ((30.0, 45.0), (-40.0, 40.0)),
+    "checker": ((35.0, 55.0), (-180.0, 180.0)),
+    "occluder": ((8.0, 18.0), (-20.0, 20.0)),
 }
 _DEFAULT_VIEW = ((25.0, 40.0), (-180.0, 180.0))
-# Image half-size (as a fraction of min(W, H)) covered by the scene radius.
-_FILL = {"plane": 0.75, "open_book": 0.7, "city": 0.75}
+# Image half-size (as a fraction of min(W, H)) covered by the scene radius. The plaza is larger
+# than the view (no sky): only its middle part is seen, in both views.
+_FILL = {
+    "plane": 0.75, "open_book": 0.7, "city": 0.75, "checker": 2.0, "checker_box": 0.45,
+    "occluder": 0.8,
+}
 
 
 def _cameras(
@@ -827,6 +932,7 @@ _PALETTE = {
     "top": ((0.30, 0.30, 0.30), (0.75, 0.75, 0.72)),
     "page": ((0.10, 0.10, 0.10), (0.92, 0.90, 0.88)),
     "stripes": ((0.35, 0.15, 0.10), (0.85, 0.75, 0.60)),
+    "tiles": ((0.18, 0.20, 0.24), (0.82, 0.84, 0.82)),
 }
 
 
@@ -846,8 +952,12 @@ def _band(t: np.ndarray, width: float) -> np.ndarray:
 
 
 def _texture(material: str, seed: int, outline: np.ndarray, a: np.ndarray,
-             b: np.ndarray) -> np.ndarray:
-    """Albedo (N, 3) BGR in [0, 1] of a polygon's texture at plane coordinates (a, b)."""
+             b: np.ndarray, unit: float = 1.0) -> np.ndarray:
+    """Albedo (N, 3) BGR in [0, 1] of a polygon's texture at plane coordinates (a, b).
+
+    ``unit`` is the world size of one pixel of a 640x480 view of the scene; only ``tiles`` uses
+    it (its period is set in pixels); the other textures are in world units.
+    """
     rng = np.random.default_rng(seed)
     lo, hi = outline.min(axis=0) - 1.0, outline.max(axis=0) + 1.0
     dark, light = (np.array(c) for c in _PALETTE[material])
@@ -898,6 +1008,18 @@ def _texture(material: str, seed: int, outline: np.ndarray, a: np.ndarray,
         p = 0.55 + 0.2 * mid + 0.25 * fine + 0.15 * coarse
         step = rng.uniform(1.5, 2.5)
         p = np.where(_band((a % step) - step / 2, 0.05) > 0, 0.2, p)
+    elif material == "tiles":
+        # A checkerboard of square tiles 15-25 px wide at 640x480 (lattice vectors of 2 tiles
+        # along the axes and 1 tile along each diagonal), thin grout joints, and a very weak
+        # non-periodic component (about 1 % of the albedo range).
+        tile = unit * rng.uniform(15.0, 25.0)
+        ua = (a - rng.uniform(0.0, 2.0 * tile)) / tile
+        ub = (b - rng.uniform(0.0, 2.0 * tile)) / tile
+        light_tile = (np.floor(ua) + np.floor(ub)) % 2 == 0
+        p = np.where(light_tile, 0.85, 0.15) + 0.02 * fine + 0.01 * mid
+        joint = 0.05
+        grout = ((ua % 1.0) < joint) | ((ub % 1.0) < joint)
+        p = np.where(grout, 0.5 + 0.02 * fine, p)
     elif material == "stripes":
         period = rng.uniform(0.6, 1.0)
         phase = (a + rng.uniform(0.5, 1.5) * b) % period
@@ -1080,6 +1202,69 @@ def _dedupe(xy: np.ndarray, min_distance: float) -> np.ndarray:
     return np.array(kept, dtype=np.intp)
 
 
+def _covisibility(
+    camera: Camera, geometry: _Geometry, X: np.ndarray, seen: np.ndarray, size: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Project the seen points ``X`` (N, 3) into ``camera``: (xy, depth, covisible flags)."""
+    width, height = size
+    xy2, z2 = project(camera, X)
+    inside = (
+        seen & (xy2[:, 0] >= 0) & (xy2[:, 0] <= width - 1)
+        & (xy2[:, 1] >= 0) & (xy2[:, 1] <= height - 1) & (z2 > 0)
+    )
+    _, zhit = _trace(camera, geometry, np.where(inside, xy2[:, 0], -10.0),
+                     np.where(inside, xy2[:, 1], -10.0))
+    covis = inside & (zhit >= z2 - 1e-6 * camera.reference_depth)
+    return xy2, z2, covis
+
+
+def _shift_for_overlap(
+    rng: np.random.Generator,
+    camera: Camera,
+    geometry: _Geometry,
+    X: np.ndarray,
+    size: tuple[int, int],
+    overlap: float,
+) -> tuple[Camera, float]:
+    """Move ``camera`` sideways until about ``overlap`` of the points ``X`` (N, 3) stay covisible.
+
+    The camera centre moves in its image plane, in a direction within 30 degrees of its x axis
+    (either way), by the amount found by bisection on a subsample of ``X``. Returns the moved
+    camera and the shift in pixels at its reference depth (0 when the views already overlap
+    less than requested).
+    """
+    width, height = size
+    phi = rng.uniform(-0.5, 0.5) + (np.pi if rng.uniform() < 0.5 else 0.0)
+    direction = np.cos(phi) * camera.rotation[0] + np.sin(phi) * camera.rotation[1]
+    sample = X[:: max(1, len(X) // 20000)]
+    if len(sample) == 0:
+        return camera, 0.0
+    every = np.ones(len(sample), dtype=bool)
+    scale = camera.focal / camera.reference_depth  # pixels per world unit
+
+    def moved(t: float) -> Camera:
+        return Camera(kind=camera.kind, rotation=camera.rotation,
+                      centre=camera.centre + t * direction, focal=camera.focal,
+                      principal=camera.principal, reference_depth=camera.reference_depth)
+
+    def fraction(t: float) -> float:
+        return float(_covisibility(moved(t), geometry, sample, every, size)[2].mean())
+
+    if fraction(0.0) <= overlap:
+        return camera, 0.0
+    lo, hi = 0.0, float(np.hypot(width, height)) / scale
+    if fraction(hi) > overlap:
+        return moved(hi), hi * scale
+    for _ in range(16):
+        mid = (lo + hi) / 2
+        if fraction(mid) > overlap:
+            lo = mid
+        else:
+            hi = mid
+    t = (lo + hi) / 2
+    return moved(t), t * scale
+
+
 def _stream(family: str, seed: int, purpose: str) -> np.random.Generator:
     """Independent random stream per (family, seed, purpose)."""
     key = zlib.crc32(f"{family}/{purpose}".encode())
@@ -1100,6 +1285,7 @@ def make_scene(
     baseline: float = 22.0,
     distance: float = 3.0,
     supersample: int = 3,
+    overlap: float | None = None,
 ) -> Scene:
     """Render a synthetic polyhedral scene from two viewpoints, with exact ground truth.
 
@@ -1107,7 +1293,8 @@ def make_scene(
     ----------
     family : str
         One of :data:`FAMILIES`: ``"plane"``, ``"box"``, ``"prism"``, ``"gable"``,
-        ``"lshape"``, ``"open_book"``, ``"city"``.
+        ``"lshape"``, ``"open_book"``, ``"city"``, ``"checker"``, ``"checker_box"``,
+        ``"occluder"`` (see the module docstring).
     seed : int
         Seed (>= 0); the same arguments give the same scene bit for bit.
     size : (int, int)
@@ -1140,6 +1327,14 @@ def make_scene(
         perspective; the affine camera is scaled to give the same framing.
     supersample : int
         Rays per pixel along each axis (anti-aliasing).
+    overlap : float or None
+        None (default): the views are redrawn until at least 75 % of the reference view's
+        scene pixels are covisible. A fraction in (0, 1]: wide baseline with partial overlap;
+        the moving camera is also moved sideways (a random direction within 30 degrees of its
+        x axis, a separate random stream) so that about this fraction of them is covisible,
+        and the views are redrawn until the achieved fraction is within 0.1 of it (after 20
+        draws the last one is kept). ``info["covisible_fraction"]`` is the achieved fraction,
+        ``info["overlap_requested"]`` this argument, ``info["overlap_shift_px"]`` the shift.
 
     Returns
     -------
@@ -1149,6 +1344,10 @@ def make_scene(
     ------
     ValueError
         Unknown family or option, or a non-positive size.
+
+    See Also
+    --------
+    make_unrelated_pair : two views of unrelated scenes (no correspondence at all).
     """
     if family not in FAMILIES:
         raise ValueError(f"unknown scene family {family!r}; expected one of {FAMILIES}")
@@ -1163,6 +1362,8 @@ def make_scene(
         raise ValueError("size must be at least 8x8 pixels and supersample >= 1")
     if not distance > 1.5:
         raise ValueError("distance must be > 1.5 scene radii")
+    if overlap is not None and not 0.0 < overlap <= 1.0:
+        raise ValueError(f"overlap must be None or in (0, 1], got {overlap!r}")
     size = (width, height)
 
     # Geometry.
@@ -1172,8 +1373,8 @@ def make_scene(
     target = (lo + hi) / 2
     radius = 0.5 * float(np.linalg.norm(hi - lo))
     if grounded:
-        target[2] = 0.35 * hi[2]
-        faces = [_ground(target, radius), *faces]
+        target[2] = _TARGET_HEIGHT.get(family, 0.35) * hi[2]
+        faces = [_ground(target, radius, _GROUND_MATERIAL.get(family, "ground")), *faces]
     planes, plane_of = _merge_planes(faces)
     polygons = tuple(
         Polygon(vertices=np.asarray(f.vertices, dtype=np.float64), plane=plane_of[i],
@@ -1184,7 +1385,9 @@ def make_scene(
 
     # Cameras: redraw the moving view until the pair is well posed.
     cam_rng = _stream(family, seed, "cameras")
+    shift_rng = _stream(family, seed, "overlap")  # used only when an overlap is requested
     gx, gy = _pixel_grid(size, 1)
+    shift_px = 0.0
     for _attempt in range(20):
         cams = _cameras(cam_rng, family, camera, target, radius, size, baseline, distance)
         ref, mov = cams
@@ -1192,16 +1395,15 @@ def make_scene(
         seen = poly_ref >= 0
         o, d = _rays(ref, gx, gy)
         X = o + np.where(seen, z_ref, 0.0)[:, None] * d
-        xy2, z2 = project(mov, X)
-        inside = (
-            seen & (xy2[:, 0] >= 0) & (xy2[:, 0] <= width - 1)
-            & (xy2[:, 1] >= 0) & (xy2[:, 1] <= height - 1) & (z2 > 0)
-        )
-        _, zhit = _trace(mov, geometry, np.where(inside, xy2[:, 0], -10.0),
-                        np.where(inside, xy2[:, 1], -10.0))
-        covis = inside & (zhit >= z2 - 1e-6 * mov.reference_depth)
-        # Well posed: the scene fills most of the reference view and 75 % of it is covisible.
-        if seen.mean() > 0.5 and covis.sum() > 0.75 * seen.sum():
+        if overlap is not None:
+            mov, shift_px = _shift_for_overlap(shift_rng, mov, geometry, X[seen], size, overlap)
+            cams = (ref, mov)
+        xy2, z2, covis = _covisibility(mov, geometry, X, seen, size)
+        if overlap is None:
+            # Well posed: the scene fills most of the reference view and 75 % of it is covisible.
+            if seen.mean() > 0.5 and covis.sum() > 0.75 * seen.sum():
+                break
+        elif seen.mean() > 0.5 and abs(covis.sum() / max(1, seen.sum()) - overlap) <= 0.1:
             break
     poly_mov, _ = _trace(mov, geometry, gx, gy)
     plane_ids = np.array([p.plane for p in polygons], dtype=np.int32)
@@ -1227,11 +1429,13 @@ def make_scene(
             normals[i] = -normals[i]
     tex_rng = _stream(family, seed, "texture")
     tex_seeds = tex_rng.integers(0, 2**31, len(polygons))
+    unit = radius / (_FILL.get(family, 0.6) * 480.0)  # world size of a pixel at 640x480
     sky = np.array([0.92, 0.80, 0.65]) * rad_rng.uniform(0.85, 1.0)
 
     def shader(light: np.ndarray, moving: bool) -> Callable:
         def shade(p: int, a: np.ndarray, b: np.ndarray, idx: np.ndarray) -> np.ndarray:
-            albedo = _texture(polygons[p].material, int(tex_seeds[p]), geometry.outline[p], a, b)
+            albedo = _texture(polygons[p].material, int(tex_seeds[p]), geometry.outline[p], a, b,
+                              unit=unit)
             lam = ambient + (1 - ambient) * max(0.0, float(normals[p] @ light))
             value = albedo * lam
             if moving and radiometric != "none":
@@ -1291,5 +1495,114 @@ def make_scene(
             "distance_radii": distance,
             "scene_radius": radius,
             "covisible_fraction": float(covisible.sum() / max(1, (face >= 0).sum())),
+            "overlap_requested": overlap,
+            "overlap_shift_px": float(shift_px),
+            "unrelated": False,
         },
+    )
+
+
+# Default families of make_unrelated_pair: not two tiled grounds (a periodic pattern makes any
+# two tiled views look alike; pass ``families`` explicitly for that harder negative).
+_UNRELATED_FAMILIES: tuple[str, ...] = tuple(f for f in FAMILIES if f not in ("checker",
+                                                                               "checker_box"))
+
+
+def make_unrelated_pair(
+    seed: int,
+    size: tuple[int, int] = (640, 480),
+    families: tuple[str, str] | None = None,
+    **kwargs,
+) -> Scene:
+    """Two views of two unrelated scenes: a negative case in which no pixel corresponds.
+
+    The reference image is the reference view of one scene and the moving image the moving view
+    of another scene (another family, another seed), both rendered by :func:`make_scene` with
+    the same options, so both images look like ordinary scene views but nothing in one is seen
+    in the other. A matcher should find no confident match, and a registration verdict should
+    reject any registration of the pair.
+
+    Parameters
+    ----------
+    seed : int
+        Seed (>= 0): it is the reference scene's seed and also draws the families (unless
+        given) and the moving scene's seed, which always differs from ``seed``. The same
+        arguments give the same pair bit for bit.
+    size : (int, int)
+        Image ``(width, height)`` in pixels.
+    families : (str, str) or None
+        Families of the reference and of the moving scene; by default two different families
+        drawn from :data:`FAMILIES` except ``"checker"`` and ``"checker_box"``.
+    **kwargs
+        Other options of :func:`make_scene` (``camera``, ``radiometric``, ``noise``, ``blur``,
+        ``color``...), applied to both scenes.
+
+    Returns
+    -------
+    Scene
+        ``family`` is ``"unrelated"`` and ``seed`` is ``seed``. ``reference``, ``face``,
+        ``planes``, ``polygons`` and the reference camera are those of the reference scene;
+        ``moving`` and the moving camera come from the other scene (a different world frame:
+        do not project the reference scene into it). ``truth_x`` and ``truth_y`` are NaN
+        everywhere, ``covisible`` is all False, ``face_moving`` is -1 everywhere (the moving
+        view sees none of :attr:`Scene.planes`), the point arrays are empty (shapes (0, 2),
+        (0, 3) and (0,)). ``info`` is the reference scene's, with ``covisible_fraction`` 0,
+        ``unrelated`` True, and ``reference_family``, ``moving_family``, ``reference_seed``,
+        ``moving_seed``.
+
+    Notes
+    -----
+    Renders two full scenes: about twice the time of :func:`make_scene`.
+
+    Examples
+    --------
+    >>> s = make_unrelated_pair(0, size=(160, 120))  # doctest: +SKIP
+    >>> s.info["unrelated"], bool(s.covisible.any()), s.points_reference.shape  # doctest: +SKIP
+    (True, False, (0, 2))
+    """
+    rng = _stream("unrelated", seed, "pair")
+    pool = _UNRELATED_FAMILIES
+    first, second = rng.choice(len(pool), 2, replace=False)
+    moving_seed = int(rng.integers(0, 2**31 - 1))
+    if moving_seed == int(seed):
+        moving_seed += 1
+    if families is None:
+        reference_family, moving_family = pool[int(first)], pool[int(second)]
+    else:
+        reference_family, moving_family = families
+    a = make_scene(reference_family, seed, size=size, **kwargs)
+    b = make_scene(moving_family, moving_seed, size=size, **kwargs)
+    shape = a.shape
+    nan = np.full(shape, np.nan)
+    info = dict(a.info)
+    info.update(
+        covisible_fraction=0.0,
+        unrelated=True,
+        reference_family=reference_family,
+        moving_family=moving_family,
+        reference_seed=int(seed),
+        moving_seed=moving_seed,
+    )
+    return Scene(
+        family="unrelated",
+        seed=int(seed),
+        camera_kind=a.camera_kind,
+        radiometric=a.radiometric,
+        reference=a.reference,
+        moving=b.moving,
+        face=a.face,
+        truth_x=nan,
+        truth_y=nan.copy(),
+        covisible=np.zeros(shape, dtype=bool),
+        face_moving=np.full(shape, -1, dtype=np.int32),
+        planes=a.planes,
+        polygons=a.polygons,
+        cameras=(a.cameras[0], b.cameras[1]),
+        points_reference=np.zeros((0, 2)),
+        points_moving=np.zeros((0, 2)),
+        points_reference_exact=np.zeros((0, 2)),
+        points_moving_exact=np.zeros((0, 2)),
+        points_world=np.zeros((0, 3)),
+        points_plane=np.zeros(0, dtype=np.int32),
+        info=info,
     )
