@@ -13,8 +13,11 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, cKDTree
+
+from core.similarity import ScoringImages, mutual_information, triangle_statistics
 
 #: Pairs the local model of a border vertex is fitted to.
 NEIGHBOURS = 12
@@ -76,7 +79,7 @@ def local_affine_extrapolation(
     dist, nb = cKDTree(ref).query(tgt, kk)
     dist, nb = dist.reshape(len(tgt), kk), nb.reshape(len(tgt), kk)
     scale = np.median(dist, axis=1, keepdims=True) + 1e-9
-    weight = 1.0 / (dist**2 + scale**2)
+    weight = scale**2 / (dist**2 + scale**2)
     centre = tgt[:, None, :]
     X = np.concatenate([(ref[nb] - centre) / scale[:, :, None], np.ones((len(tgt), kk, 1))], 2)
     Y = mov[nb]
@@ -97,6 +100,7 @@ def frame_vertices(
     shape: tuple[int, int],
     *,
     spacing: float | None = None,
+    images: ScoringImages | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Border vertices of the reference frame and their extrapolated moving positions.
 
@@ -110,6 +114,10 @@ def frame_vertices(
         Distance between border vertices, pixels. By default twice the median distance between
         neighbouring measured points, within 1/16 and 1/4 of the shorter side: as dense as the
         mesh near the border, without slivers.
+    images : ScoringImages, optional
+        With the images, each border vertex takes the candidate of
+        :func:`choose_by_agreement` (the local affine extrapolation or the pairs' global
+        homography); without them, the local affine extrapolation.
 
     Returns
     -------
@@ -128,4 +136,80 @@ def frame_vertices(
     near = tree.query(border, 1)[0] < 0.25 * spacing
     near[:4] = False
     border = border[~near]
-    return border, local_affine_extrapolation(ref, mov, border)
+    candidates = [local_affine_extrapolation(ref, mov, border)]
+    H = _global_homography(ref, mov)
+    if H is not None:
+        q = border @ H[:, :2].T + H[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mapped = q[:, :2] / q[:, 2:3]
+        if np.all(np.isfinite(mapped)) and np.all(q[:, 2] > 0):
+            candidates.append(mapped)
+    if images is None or len(candidates) == 1:
+        return border, candidates[0]
+    return border, choose_by_agreement(images, ref, mov, border, np.stack(candidates))
+
+
+def _global_homography(reference: np.ndarray, moving: np.ndarray) -> np.ndarray | None:
+    """Robust homography of all pairs (the dominant plane), or None."""
+    if len(reference) < 8:
+        return None
+    H, mask = cv2.findHomography(reference, moving, cv2.USAC_MAGSAC, 3.0)
+    if H is None or mask is None or int(mask.sum()) < 8:
+        return None
+    return H / H[2, 2]
+
+
+def choose_by_agreement(
+    images: ScoringImages,
+    reference: np.ndarray,
+    moving: np.ndarray,
+    border: np.ndarray,
+    candidates: np.ndarray,
+) -> np.ndarray:
+    """For each border vertex, the candidate position under which the images agree best.
+
+    The frame's vertices (measured pairs, then border vertices at their first candidate) are
+    Delaunay-triangulated; each border vertex then takes the candidate that maximises the
+    mutual information of the pixels of its incident triangles, the other vertices held
+    where they are. Extrapolation from the nearest pairs is right where the scene continues
+    their surface, a global homography where the border shows the dominant plane (often the
+    ground) beyond other surfaces: the images tell which.
+
+    Parameters
+    ----------
+    images : ScoringImages
+    reference, moving : ndarray, shape (N, 2)
+        Measured pairs.
+    border : ndarray, shape (M, 2)
+        Border vertices (reference image).
+    candidates : ndarray, shape (C, M, 2)
+        Candidate moving positions of each border vertex.
+
+    Returns
+    -------
+    ndarray, shape (M, 2)
+    """
+    n, m = len(reference), len(border)
+    ref_all = np.concatenate([reference, border])
+    mov_all = np.concatenate([moving, candidates[0]])
+    tris = Delaunay(ref_all).simplices
+    rows, ref_tris, mov_tris = [], [], []
+    for c in range(len(candidates)):
+        for v in range(m):
+            incident = tris[np.any(tris == n + v, axis=1)]
+            if not len(incident):
+                continue
+            mov_c = mov_all.copy()
+            mov_c[n + v] = candidates[c, v]
+            ref_tris.append(ref_all[incident])
+            mov_tris.append(mov_c[incident])
+            rows.append(np.full(len(incident), c * m + v))
+    if not rows:
+        return candidates[0]
+    hist, _ = triangle_statistics(images, np.concatenate(ref_tris), np.concatenate(mov_tris))
+    owner = np.concatenate(rows)
+    summed = np.zeros((len(candidates) * m, hist.shape[1]), dtype=np.int64)
+    np.add.at(summed, owner, hist)
+    mi, _ = mutual_information(summed, images.bins)
+    best = np.argmax(mi.reshape(len(candidates), m), axis=0)
+    return candidates[best, np.arange(m)]

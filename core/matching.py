@@ -764,16 +764,15 @@ def _automatic(
         if not _is_enough(tracked, options):
             sift_matches = match_sift(ref_gray, mov_gray, candidates)
             attempts = [tracked, _try_filter(sift_matches, options, images)]
-            sift = attempts[1]
-            if not isinstance(sift, NotEnoughPointsError):
-                # Tracking restarted from the SIFT geometry is usually denser and more accurate
-                # than SIFT itself (LK at full resolution).
-                H = _homography_from_matches(sift[0], seed)
-                if H is not None:
-                    guided = _try_filter(lk(prior=H), options, images)
-                    if not isinstance(guided, NotEnoughPointsError):
-                        guided[0].counts["prior_sift_pairs"] = len(sift[0].reference)
-                    attempts.append(guided)
+            # Tracking restarted from the SIFT geometry is usually denser and more accurate than
+            # SIFT itself (LK at full resolution). The robust fit takes the SIFT matches before
+            # the checks, which thin them too much for it; the tracks are checked in turn.
+            H = _homography_from_matches(sift_matches, seed)
+            if H is not None:
+                guided = _try_filter(lk(prior=H), options, images)
+                if not isinstance(guided, NotEnoughPointsError):
+                    guided[0].counts["prior_sift_pairs"] = len(sift_matches.reference)
+                attempts.append(guided)
             found = [a for a in attempts if not isinstance(a, NotEnoughPointsError)]
             if found:
                 # Sets that are large and coherent first, then the largest; ties go to the

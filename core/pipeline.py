@@ -184,10 +184,13 @@ def register(
 
     t = time.perf_counter()
     report("triangulating", 0.0)
+    images = prepare_images(reference, moving, opts.bins)
     ref_pts, mov_pts = conjugate.reference, conjugate.moving
     extrapolated = np.zeros(len(ref_pts), bool)
     if opts.extent == "frame":
-        border_ref, border_mov = frame_vertices(ref_pts, mov_pts, reference.shape[:2])
+        border_ref, border_mov = frame_vertices(
+            ref_pts, mov_pts, reference.shape[:2], images=images
+        )
         ref_pts = np.concatenate([ref_pts, border_ref])
         mov_pts = np.concatenate([mov_pts, border_mov])
         extrapolated = np.concatenate([extrapolated, np.ones(len(border_ref), bool)])
@@ -198,7 +201,6 @@ def register(
 
     t = time.perf_counter()
     report("optimizing", 0.0)
-    images = prepare_images(reference, moving, opts.bins)
     if opts.optimizer == "none":
         search = _unoptimized(images, mesh)
     elif opts.optimizer == "greedy":

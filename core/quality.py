@@ -20,6 +20,7 @@ which prints the distribution of the true endpoint error per verdict).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -54,27 +55,34 @@ MIN_TEXTURE_BITS = 1.0
 #: unrelated images.
 LOW_CONSISTENCY = 0.9
 
-#: Rules of the verdict: (figure, comparison, threshold, level, reason template).
-UNRELIABLE_RULES: tuple[tuple[str, str, float, str], ...] = (
-    ("points", "<", 8, "only {value:.0f} conjugate pairs: too few to trust the geometry"),
-    ("global_peak", "<", 0.05,
-     "the images agree about as well one step away as at the registration "
-     "(peak {value:.3f}): no evidence that they show the same scene aligned"),
-    ("low_consistency_share", ">", 0.65,
-     "{value:.0%} of the textured measured area is not locally consistent"),
-    ("measured_coverage", "<", 0.05,
-     "only {value:.1%} of the reference frame is covered by measured points"),
+Rule = tuple[Callable[[dict], bool], str]
+
+#: Rules of the verdict, each a test over the figures and the reason it gives.
+UNRELIABLE_RULES: tuple[Rule, ...] = (
+    (lambda f: f["points"] < 8,
+     "only {points} conjugate pairs: too few to trust the geometry"),
+    (lambda f: f["global_peak"] < 0.05,
+     "the images agree about as well one step away as at the registration (peak "
+     "{global_peak:.3f}): no evidence that they show the same scene aligned"),
+    (lambda f: f["low_consistency_share"] > 0.65,
+     "{low_consistency_share:.0%} of the textured measured area is not locally consistent"),
+    (lambda f: f["measured_coverage"] < 0.05,
+     "only {measured_coverage:.1%} of the reference frame is covered by measured points"),
 )
-DOUBTFUL_RULES: tuple[tuple[str, str, float, str], ...] = (
-    ("points", "<", 30, "only {value:.0f} conjugate pairs"),
-    ("inlier_share", "<", 0.35,
-     "only {value:.0%} of the candidate pairs passed the checks (repeated pattern, "
-     "low overlap or a hard pair)"),
-    ("global_peak", "<", 0.25, "weak agreement peak ({value:.3f})"),
-    ("low_consistency_share", ">", 0.4,
-     "{value:.0%} of the textured measured area is not locally consistent"),
-    ("measured_coverage", "<", 0.3,
-     "only {value:.0%} of the reference frame is covered by measured points"),
+DOUBTFUL_RULES: tuple[Rule, ...] = (
+    (lambda f: f["points"] < 30, "only {points} conjugate pairs"),
+    (lambda f: f["inlier_share"] < 0.35,
+     "only {inlier_share:.0%} of the candidate pairs passed the checks (repeated pattern, low "
+     "overlap or a hard pair)"),
+    (lambda f: f["global_peak"] < 0.25, "weak agreement peak ({global_peak:.3f})"),
+    (lambda f: f["low_consistency_share"] > 0.4,
+     "{low_consistency_share:.0%} of the textured measured area is not locally consistent"),
+    (lambda f: f["measured_coverage"] < 0.3,
+     "only {measured_coverage:.0%} of the reference frame is covered by measured points"),
+    (lambda f: f["extrapolated_coverage"] > 0.1 and f["extrapolated_low_consistency_share"] > 0.5,
+     "the extrapolated border ({extrapolated_coverage:.0%} of the frame) disagrees with the "
+     "images ({extrapolated_low_consistency_share:.0%} of it is not locally consistent): "
+     "trust the measured part only, or use extent=hull"),
 )
 
 
@@ -234,6 +242,10 @@ def assess(
     low = textured & (scores < 1.0 - LOW_CONSISTENCY)
     low_share = float(areas[low].sum()) / textured_area if textured_area > 0 else 1.0
     measured_area = float(areas[measured].sum())
+    frame_area = float(images.shape[0] * images.shape[1])
+    outer = ~measured & np.isfinite(scores)
+    outer_area = float(areas[outer].sum())
+    outer_low = float(areas[outer & (scores < 1.0 - LOW_CONSISTENCY)].sum())
     candidates = counts.get("consistent", counts.get("valid", counts.get("given", 0)))
     if "lk_consistent" in counts and "prior_sift_pairs" not in counts:
         candidates = max(candidates, counts["lk_consistent"])
@@ -243,7 +255,7 @@ def assess(
         "extrapolated_vertices": int(extra.sum()),
         "dropped": {k: int(v) for k, v in rejected.items() if v},
         "inlier_share": kept / candidates if candidates else 0.0,
-        "measured_coverage": measured_area / float(images.shape[0] * images.shape[1]),
+        "measured_coverage": measured_area / frame_area,
         "mesh_coverage": _coverage(ref[tris], images.shape),
         "mapped_coverage": float(mapped_coverage),
         "mi_before": float(mi[0]),
@@ -252,6 +264,8 @@ def assess(
         "nmi_after": float(nmi[1]),
         "global_peak": float(global_peak),
         "low_consistency_share": low_share,
+        "extrapolated_coverage": float(areas[~measured].sum()) / frame_area,
+        "extrapolated_low_consistency_share": outer_low / outer_area if outer_area else 0.0,
         "textured_share": textured_area / measured_area if measured_area > 0 else 0.0,
     }
     # Spread thinning is not a rejection: the share counts the pairs the checks let through.
@@ -259,11 +273,7 @@ def assess(
         figures["inlier_share"] = min(1.0, (kept + rejected["spread"]) / candidates)
     verdict, reasons = "good", []
     for level, rules in (("unreliable", UNRELIABLE_RULES), ("doubtful", DOUBTFUL_RULES)):
-        hits = [
-            text.format(value=figures[name])
-            for name, op, limit, text in rules
-            if (figures[name] < limit if op == "<" else figures[name] > limit)
-        ]
+        hits = [text.format(**figures) for test, text in rules if test(figures)]
         if hits:
             verdict, reasons = level, hits
             break

@@ -44,6 +44,10 @@ FINE_TEMPLATE, FINE_RADIUS = 11, 10
 #: pattern makes, and the 60-pixel template at 1024 px sees past bricks and tiles.
 COARSE_TEMPLATE, COARSE_RADIUS, COARSE_SIDE = 15, 20, 256
 
+#: Neighbours farther than this many times the median nearest-neighbour distance do not judge
+#: a pair (and a pair with fewer than five near neighbours is not judged).
+LOCAL_REACH = 4.0
+
 #: Standard deviation (grey levels) under which a template has no texture to correlate.
 MIN_TEMPLATE_STD = 2.0
 
@@ -277,21 +281,26 @@ def neighbour_outliers(
         if kk < 4:
             break
         r, m = ref[idx], mov[idx]
-        _, nb = cKDTree(r).query(r, kk + 1)
-        nb = nb[:, 1:]  # the point itself is not its own witness
+        dist, nb = cKDTree(r).query(r, kk + 1)
+        dist, nb = dist[:, 1:], nb[:, 1:]  # the point itself is not its own witness
+        # Only near neighbours are witnesses: far apart, sparse points may lie on different
+        # surfaces that no affine map joins.
+        near = dist <= LOCAL_REACH * np.median(dist[:, 0])
+        judged = near.sum(axis=1) >= 5
+        nb = np.where(near, nb, np.arange(len(r))[:, None])
         centre = r[nb].mean(axis=1, keepdims=True)
         X = np.concatenate([r[nb] - centre, np.ones((len(r), kk, 1))], axis=2)  # (n, kk, 3)
         Y = m[nb]
         # Trimmed least squares: a wrong neighbour must not bend the map that judges the pair.
-        weight = np.ones((len(r), kk))
+        weight = near.astype(np.float64)
         for _ in range(2):
             A = _weighted_affine(X, Y, weight)
             res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
-            spread = np.median(res, axis=1, keepdims=True)
-            weight = (res <= np.maximum(min_px, 2.5 * spread)).astype(np.float64)
+            spread = _masked_median(res, near)[:, None]
+            weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
         A = _weighted_affine(X, Y, weight)
         res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
-        spread = np.median(res, axis=1)
+        spread = _masked_median(res, near)
         xs = np.concatenate([r - centre[:, 0], np.ones((len(r), 1))], axis=1)
         miss = np.linalg.norm(np.einsum("ni,nij->nj", xs, A) - m, axis=1)
         # Support: neighbours moving like the pair (up to a 10 % strain over their distance).
@@ -299,12 +308,22 @@ def neighbour_outliers(
         disp = m - r
         gap = np.linalg.norm(disp[nb] - disp[:, None, :], axis=2)
         reach = np.maximum(min_px, 0.1 * np.linalg.norm(r[nb] - r[:, None, :], axis=2))
-        support = np.count_nonzero(gap <= reach, axis=1)
-        bad = (miss > min_px) & (miss > factor * spread) & (support < 2)
+        support = np.count_nonzero(near & (gap <= reach), axis=1)
+        bad = judged & (miss > min_px) & (miss > factor * spread) & (support < 2)
         if not np.any(bad):
             break
         out[idx[bad]] = True
     return out
+
+
+def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Row medians of ``values`` over ``mask`` (0 for an empty row)."""
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    lo = ordered[rows, np.maximum(count - 1, 0) // 2]
+    hi = ordered[rows, np.minimum(count // 2, values.shape[1] - 1)]
+    return np.where(count > 0, 0.5 * (lo + hi), 0.0)
 
 
 def _weighted_affine(X: np.ndarray, Y: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -1,0 +1,66 @@
+"""The verdict on a registration (core.quality)."""
+
+import numpy as np
+import pytest
+
+from core.errors import UnreliableResultError
+from core.pipeline import register
+from core.quality import peak_scores
+from core.similarity import prepare_images
+from tests.core.synthetic import book_map, open_book, texture
+
+
+def _book_case(n: int = 80, seed: int = 0):
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=seed)
+    rng = np.random.default_rng(seed)
+    ref = rng.uniform([5, 5], [234, 194], (n, 2))
+    mov = np.stack(book_map(ref[:, 0], ref[:, 1], 120.0), axis=1)
+    return reference, moving, ref, mov
+
+
+def test_a_correct_registration_is_good():
+    reference, moving, ref, mov = _book_case()
+    r = register(reference, moving, (ref, mov))
+    q = r.quality.to_dict()
+    assert q["verdict"] == "good", q["reasons"]
+    assert q["global_peak"] > 0.25
+    assert q["low_consistency_share"] < 0.3
+    assert len(r.quality.triangle_scores) == len(r.final_triangles)
+
+
+def test_unrelated_images_with_points_are_unreliable():
+    reference, _, ref, mov = _book_case()
+    other = texture(reference.shape, 99)
+    r = register(reference, other, (ref, mov))
+    q = r.quality.to_dict()
+    assert q["verdict"] == "unreliable"
+    assert any("agree" in reason or "consistent" in reason for reason in q["reasons"])
+    assert q["global_peak"] < 0.1
+
+
+def test_wrong_points_are_never_good():
+    reference, moving, ref, mov = _book_case()
+    rng = np.random.default_rng(5)
+    wrong = mov + rng.normal(0, 12.0, mov.shape)  # every pair about 15 px off
+    r = register(reference, moving, (ref, wrong), {"epipolar_filter": False})
+    assert r.quality.verdict != "good"
+
+
+def test_on_unreliable_fail_raises_with_the_reasons():
+    reference, _, ref, mov = _book_case()
+    other = texture(reference.shape, 99)
+    with pytest.raises(UnreliableResultError) as info:
+        register(reference, other, (ref, mov), {"on_unreliable": "fail"})
+    assert info.value.quality["verdict"] == "unreliable"
+    assert info.value.quality["reasons"][0] in str(info.value)
+
+
+def test_peak_scores_are_high_at_the_truth_and_low_one_shift_away():
+    reference, moving, ref, mov = _book_case()
+    images = prepare_images(reference, moving, 16)
+    r = np.array([[[20.0, 20.0], [100.0, 20.0], [20.0, 150.0]]])
+    m = np.stack(book_map(r[..., 0], r[..., 1], 120.0), axis=-1)
+    good, _, peak_good = peak_scores(images, r, m)
+    off, _, peak_off = peak_scores(images, r, m + [8.0, 0.0])
+    assert good[0] > 0.3 and peak_good > 0.3
+    assert peak_off < 0.1
