@@ -111,19 +111,28 @@ def build_cases(quick: bool = False) -> list[Case]:
     return cases
 
 
-def _truth_at(scene: Scene, points: np.ndarray) -> np.ndarray:
-    """True moving positions of reference points (bilinear, nearest pixel where undefined)."""
+def _truth_at(scene: Scene, points: np.ndarray, reach: int = 2) -> np.ndarray:
+    """True moving positions of reference points: bilinear in the truth maps, else (a point on
+    a silhouette, whose neighbouring pixel centres see the background) the value of the
+    nearest pixel within ``reach`` pixels that sees the scene; NaN if none does."""
     p = points.astype(np.float32)
-    tx = cv2.remap(scene.truth_x.astype(np.float32), p[:, 0], p[:, 1], cv2.INTER_LINEAR,
-                   borderMode=cv2.BORDER_REPLICATE).ravel()
-    ty = cv2.remap(scene.truth_y.astype(np.float32), p[:, 0], p[:, 1], cv2.INTER_LINEAR,
-                   borderMode=cv2.BORDER_REPLICATE).ravel()
+    out = np.column_stack([
+        cv2.remap(m.astype(np.float32), p[:, 0], p[:, 1], cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE).ravel()
+        for m in (scene.truth_x, scene.truth_y)
+    ]).astype(np.float64)
     h, w = scene.shape
-    ix = np.clip(np.rint(points[:, 0]).astype(int), 0, w - 1)
-    iy = np.clip(np.rint(points[:, 1]).astype(int), 0, h - 1)
-    tx = np.where(np.isfinite(tx), tx, scene.truth_x[iy, ix])
-    ty = np.where(np.isfinite(ty), ty, scene.truth_y[iy, ix])
-    return np.column_stack([tx, ty]).astype(np.float64)
+    for i in np.flatnonzero(~np.all(np.isfinite(out), axis=1)):
+        x, y = points[i]
+        best = np.inf
+        for iy in range(int(np.floor(y)) - reach, int(np.ceil(y)) + reach + 1):
+            for ix in range(int(np.floor(x)) - reach, int(np.ceil(x)) + reach + 1):
+                if 0 <= ix < w and 0 <= iy < h and np.isfinite(scene.truth_x[iy, ix]):
+                    d = (ix - x) ** 2 + (iy - y) ** 2
+                    if d < best:
+                        best = d
+                        out[i] = scene.truth_x[iy, ix], scene.truth_y[iy, ix]
+    return out
 
 
 def run_case(case: Case) -> dict:

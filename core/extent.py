@@ -101,6 +101,7 @@ def frame_vertices(
     *,
     spacing: float | None = None,
     images: ScoringImages | None = None,
+    scale: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Border vertices of the reference frame and their extrapolated moving positions.
 
@@ -117,7 +118,10 @@ def frame_vertices(
     images : ScoringImages, optional
         With the images, each border vertex takes the candidate of
         :func:`choose_by_agreement` (the local affine extrapolation or the pairs' global
-        homography); without them, the local affine extrapolation.
+        homography); without them, the local affine extrapolation. They may be reduced by
+        ``scale`` (:func:`core.similarity.reduced`).
+    scale : float
+        Scale of ``images`` against the pixels of the points.
 
     Returns
     -------
@@ -146,7 +150,13 @@ def frame_vertices(
             candidates.append(mapped)
     if images is None or len(candidates) == 1:
         return border, candidates[0]
-    return border, choose_by_agreement(images, ref, mov, border, np.stack(candidates))
+    def level(p: np.ndarray) -> np.ndarray:
+        return (p + 0.5) * scale - 0.5
+
+    chosen = choose_by_agreement(
+        images, level(ref), level(mov), level(border), level(np.stack(candidates))
+    )
+    return border, (chosen + 0.5) / scale - 0.5
 
 
 def _global_homography(reference: np.ndarray, moving: np.ndarray) -> np.ndarray | None:

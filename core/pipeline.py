@@ -17,11 +17,12 @@ from core.matching import ConjugatePoints, find_conjugate_points
 from core.mesh import Mesh
 from core.optimize import SearchResult, greedy_search
 from core.options import RegistrationOptions
-from core.quality import Quality, assess
+from core.quality import SCORING_SIDE, Quality, assess
 from core.similarity import (
     ScoringImages,
     mutual_information,
     prepare_images,
+    reduced,
     triangle_statistics,
 )
 from core.triangulation import TriangulationReport, initial_mesh
@@ -185,11 +186,14 @@ def register(
     t = time.perf_counter()
     report("triangulating", 0.0)
     images = prepare_images(reference, moving, opts.bins)
+    # The verdict and the choice of the border vertices look at the images at a scale where
+    # 8 pixels mean the same on any photo, and cost a fraction of a full-resolution pass.
+    level, scale = reduced(images, SCORING_SIDE)
     ref_pts, mov_pts = conjugate.reference, conjugate.moving
     extrapolated = np.zeros(len(ref_pts), bool)
     if opts.extent == "frame":
         border_ref, border_mov = frame_vertices(
-            ref_pts, mov_pts, reference.shape[:2], images=images
+            ref_pts, mov_pts, reference.shape[:2], images=level, scale=scale
         )
         ref_pts = np.concatenate([ref_pts, border_ref])
         mov_pts = np.concatenate([mov_pts, border_mov])
@@ -231,7 +235,7 @@ def register(
 
     t = time.perf_counter()
     quality = assess(
-        images,
+        level,
         mesh.reference,
         mesh.moving,
         final_triangles,
@@ -241,6 +245,7 @@ def register(
         mi=(search.initial_mi, search.final_mi),
         nmi=(search.initial_nmi, search.final_nmi),
         mapped_coverage=float(np.count_nonzero(registered[:, :, -1])) / registered[:, :, -1].size,
+        scale=scale,
     )
     timings["quality_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t_start

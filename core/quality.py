@@ -23,16 +23,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from core.raster import triangle_areas
-from core.similarity import (
-    ScoringImages,
-    mutual_information,
-    prepare_images,
-    triangle_statistics,
-)
+from core.similarity import ScoringImages, mutual_information, triangle_statistics
 
 #: Shift (pixels of the scoring level) of the peak test.
 SHIFT_PX = 8.0
@@ -75,11 +69,11 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
      "only {inlier_share:.0%} of the candidate pairs passed the checks (repeated pattern, low "
      "overlap or a hard pair)"),
     (lambda f: f["global_peak"] < 0.25, "weak agreement peak ({global_peak:.3f})"),
-    (lambda f: f["low_consistency_share"] > 0.4,
+    (lambda f: f["low_consistency_share"] > 0.35,
      "{low_consistency_share:.0%} of the textured measured area is not locally consistent"),
     (lambda f: f["measured_coverage"] < 0.3,
      "only {measured_coverage:.0%} of the reference frame is covered by measured points"),
-    (lambda f: f["extrapolated_coverage"] > 0.1 and f["extrapolated_low_consistency_share"] > 0.5,
+    (lambda f: f["extrapolated_coverage"] > 0.1 and f["extrapolated_low_consistency_share"] > 0.45,
      "the extrapolated border ({extrapolated_coverage:.0%} of the frame) disagrees with the "
      "images ({extrapolated_low_consistency_share:.0%} of it is not locally consistent): "
      "trust the measured part only, or use extent=hull"),
@@ -166,27 +160,6 @@ def peak_scores(
     return scores, entropy, global_peak
 
 
-def _halve(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
-    scale = 1.0
-    while max(gray.shape) > max_side:
-        gray = cv2.pyrDown(gray)
-        scale /= 2
-    return gray, scale
-
-
-def _scoring_level(images: ScoringImages) -> tuple[ScoringImages, float, float]:
-    """The images reduced to at most :data:`SCORING_SIDE` pixels, and the two scales."""
-    ref = images.reference_values.reshape(images.shape)
-    if max(images.shape) <= SCORING_SIDE and max(images.moving.shape) <= SCORING_SIDE:
-        return images, 1.0, 1.0
-    # One scale for both, chosen by the reference, so that the shift is the same in both.
-    ref_level, s = _halve(ref, SCORING_SIDE)
-    mov_level = images.moving
-    for _ in range(round(-np.log2(s))):
-        mov_level = cv2.pyrDown(mov_level)
-    return prepare_images(ref_level, mov_level, images.bins), s, s
-
-
 def _coverage(tri_xy: np.ndarray, shape: tuple[int, int]) -> float:
     return float(triangle_areas(tri_xy).sum()) / float(shape[0] * shape[1])
 
@@ -203,13 +176,15 @@ def assess(
     mi: tuple[float, float],
     nmi: tuple[float, float],
     mapped_coverage: float,
+    scale: float = 1.0,
 ) -> Quality:
     """Verdict of a registration from its final mesh and the matching record.
 
     Parameters
     ----------
     images : ScoringImages
-        Both images prepared for scoring.
+        Both images prepared for scoring, reduced to at most :data:`SCORING_SIDE` pixels
+        (:func:`core.similarity.reduced`).
     reference_vertices, moving_vertices : ndarray, shape (N, 2)
     triangles : ndarray, shape (T, 3)
         Final mesh.
@@ -222,6 +197,8 @@ def assess(
         Global MI (bits) and NMI before and after the search.
     mapped_coverage : float
         Share of the reference frame mapped inside the moving image (opaque in registered.png).
+    scale : float
+        Scale of ``images`` against the full-resolution vertices.
 
     Returns
     -------
@@ -231,9 +208,8 @@ def assess(
     mov = np.asarray(moving_vertices, dtype=np.float64)
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     extra = np.asarray(extrapolated, dtype=bool)
-    level, scale_ref, scale_mov = _scoring_level(images)
     scores, _, global_peak = peak_scores(
-        level, (ref[tris] + 0.5) * scale_ref - 0.5, (mov[tris] + 0.5) * scale_mov - 0.5
+        images, (ref[tris] + 0.5) * scale - 0.5, (mov[tris] + 0.5) * scale - 0.5
     )
     measured = ~extra[tris].any(axis=1)
     areas = triangle_areas(ref[tris])

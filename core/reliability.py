@@ -20,7 +20,6 @@ the centre of the top-left pixel.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -101,21 +100,11 @@ def _check_scale(
     pred_pts: np.ndarray,
     template: int,
     radius: int,
-    threads: int | None = None,
+    todo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Best peak, second/best ratio, peak distance and a low-texture flag for each pair."""
+    """Best peak, second/best ratio, peak distance and a low-texture flag for each pair (only
+    the pairs of ``todo``, a boolean mask, when given)."""
     n = len(ref_pts)
-    if threads is None:
-        threads = max(1, min(cv2.getNumThreads(), n // 64))
-    if threads > 1:
-        # OpenCV releases the GIL: chunks of pairs run side by side on the worker's threads.
-        chunks = np.array_split(np.arange(n), threads)
-        with ThreadPoolExecutor(threads) as pool:
-            parts = list(pool.map(
-                lambda c: _check_scale(ref, warped, ref_pts[c], pred_pts[c], template, radius, 1),
-                chunks,
-            ))
-        return tuple(np.concatenate(col) for col in zip(*parts, strict=True))  # type: ignore
     best = np.full(n, np.nan)
     ratio = np.full(n, np.nan)
     dist = np.full(n, np.inf)
@@ -133,11 +122,11 @@ def _check_scale(
     expect = pred_pts + (r - ref_pts)
     p = np.rint(expect).astype(np.int64)
     inside = np.all(np.abs(r - ref_pts) <= half + 1, axis=1)
-    for i in range(n):
+    if todo is not None:
+        inside &= todo
+    for i in np.flatnonzero(inside).tolist():
         rx, ry = r[i]
         px, py = p[i]
-        if not inside[i]:
-            continue
         tpl = ref[ry - half : ry + half + 1, rx - half : rx + half + 1]
         # A window that would leave the image is moved inside it, not cut: a repeated
         # pattern near the border must still show its second copy.
@@ -217,8 +206,11 @@ def uniqueness(
     ratio = np.full(n, -np.inf)
     peak = np.full(n, np.nan)
     for a, b, scale, template, radius in levels:
+        # A pair already rejected on a finer scale costs no more correlations.
+        alive = ~(disagree | (ratio >= AMBIGUITY_RATIO))
         best_s, ratio_s, dist_s, flat_s = _check_scale(
-            a, b, (ref_pts + 0.5) * scale - 0.5, (pred + 0.5) * scale - 0.5, template, radius
+            a, b, (ref_pts + 0.5) * scale - 0.5, (pred + 0.5) * scale - 0.5, template, radius,
+            alive,
         )
         done = np.isfinite(best_s)
         if scale == 1.0:

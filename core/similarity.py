@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from core import kernels
@@ -99,6 +100,21 @@ def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> Scor
         moving_bin_offset=float(m_lo),
         moving_bin_scale=bins / (m_hi - m_lo + 1.0),
     )
+
+
+def reduced(images: ScoringImages, max_side: int) -> tuple[ScoringImages, float]:
+    """Both images halved (Gaussian pyramid) until the reference's longer side is at most
+    ``max_side``, and the scale: a pixel ``p`` of either image is ``(p + 0.5) * scale - 0.5``
+    there. Both are halved the same number of times, so a shift means the same in both."""
+    ref = images.reference_values.reshape(images.shape)
+    mov = images.moving
+    scale = 1.0
+    while max(ref.shape) > max_side:
+        ref, mov = cv2.pyrDown(ref), cv2.pyrDown(mov)
+        scale /= 2
+    if scale == 1.0:
+        return images, 1.0
+    return prepare_images(ref, mov, images.bins), scale
 
 
 def triangle_statistics(

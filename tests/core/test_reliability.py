@@ -46,7 +46,9 @@ def test_pairs_off_by_one_period_of_a_checkerboard_are_ambiguous():
     wrong = pts + [5.0 + period, 3.0]  # locked on the next copy of the pattern
     check = uniqueness(ref, mov, pts, wrong, None)
     assert not check.ok.any()
-    assert check.counts().get("ambiguous", 0) >= 50
+    # Inside a flat square the fine scale already disagrees; elsewhere the copies tie.
+    assert check.counts().get("ambiguous", 0) >= 10
+    assert set(check.counts()) <= {"ambiguous", "disagreement"}
     right = uniqueness(ref, mov, pts, pts + [5.0, 3.0], None)
     assert not right.ok.any()  # even the true pairs cannot be told from their copies
 
