@@ -254,3 +254,9 @@ def assess(
             verdict, reasons = level, hits
             break
     return Quality(verdict, reasons, figures, scores)
+
+
+def refused(reason: str, points: int) -> dict:
+    """The quality document of a registration refused for want of reliable conjugate points
+    (the job fails; its verdict is ``unreliable`` with the reason)."""
+    return {"verdict": "unreliable", "reasons": [reason], "points": int(points)}

@@ -203,7 +203,9 @@ class StatusInfo(BaseModel):
         "unreliable), 'reasons' (why it is not good) and the figures behind it (points kept "
         "and dropped by cause, inlier share, coverage of the reference frame, MI and NMI "
         "before and after, global agreement peak, share of the textured area whose local "
-        "consistency is low). Also set on a job failed as unreliable (option on_unreliable).",
+        "consistency is low). Also set on a failed job when the failure is a verdict on the "
+        "images: 'unreliable' with the reason, for on_unreliable=fail and for a pair in which "
+        "too few reliable conjugate points were found.",
         examples=[{"verdict": "good", "reasons": [], "points": 412, "inlier_share": 0.84,
                    "measured_coverage": 0.68, "mesh_coverage": 1.0, "global_peak": 0.61}],
     )

@@ -30,9 +30,10 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from core.errors import InputError, UnreliableResultError
+from core.errors import InputError, NotEnoughPointsError, UnreliableResultError
 from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
+from core.quality import refused
 from service.settings import Settings
 from service.storage import IMAGES, RESULTS, LocalStorage
 from service.store import JobStatus, JobStore
@@ -335,8 +336,10 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     except InputError as exc:
         field = getattr(exc, "field", None)
         detail = f"{field}: {exc}" if field else str(exc)
+        # Too few reliable pairs is a verdict on the images too: unreliable, and why.
+        quality = refused(str(exc), exc.found) if isinstance(exc, NotEnoughPointsError) else None
         return fail(_problem("registration-failed", "Input cannot be registered", 422, detail,
-                             field))
+                             field), quality)
     except ValidationError as exc:
         return fail(_problem("registration-failed", "Invalid options", 422, str(exc), "options"))
     except Exception as exc:  # noqa: BLE001 (a bug must fail the job, not the worker)

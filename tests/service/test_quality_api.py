@@ -67,3 +67,17 @@ def test_cli_exits_with_3_on_an_unreliable_result(pair: Pair, tmp_path: Path) ->
     run = pwlreg(*args)
     assert run.returncode == 0, run.stderr
     assert "quality unreliable" in run.stdout
+
+
+def test_a_pair_without_reliable_points_fails_with_an_unreliable_verdict(
+    server: Server, pair: Pair
+) -> None:
+    """Unrelated images without points: the matcher finds nothing unambiguous, so the job fails
+    and says why, with the verdict."""
+    other = _unrelated(pair)
+    with server.client() as client:
+        done = wait_for(client, submit(client, other, points=None).json()["id"])
+        assert done["status"] == "failed", done
+        assert done["error"]["type"] == "urn:pwlreg:problem:registration-failed"
+        assert done["quality"]["verdict"] == "unreliable"
+        assert done["quality"]["reasons"] == [done["error"]["detail"].removeprefix("points: ")]
