@@ -38,7 +38,7 @@ COPY service ./service
 # compiles again, into the same writable cache).
 RUN pip install --no-deps . \
     && cd / && python -c "import cv2, core.pipeline, service.app, service.cli" \
-    && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from core.kernels import warm_up; warm_up()"
+    && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from core.pipeline import warm_up; warm_up()"
 
 # --- runtime: the virtual environment only, as a non-root user ----------------------------------
 FROM python:${PYTHON_VERSION}-slim AS runtime

@@ -225,7 +225,7 @@ def run_batch(url: str, pid: int, pair: tuple[bytes, bytes, bytes], n: int) -> d
 
 def _core_init() -> None:
     cv2.setNumThreads(1)
-    from core.kernels import warm_up
+    from core.pipeline import warm_up
 
     warm_up()
 

@@ -44,10 +44,9 @@ from bench.metrics import endpoint_error
 from bench.scenes import Scene, make_scene, make_unrelated_pair
 from core.errors import RegistrationError
 from core.extent import local_affine_extrapolation
-from core.kernels import warm_up
 from core.matching import find_conjugate_points
 from core.options import RegistrationOptions
-from core.pipeline import register
+from core.pipeline import register, warm_up
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "trust"
 SIZE = (640, 480)

@@ -268,3 +268,17 @@ def register(
         moving_size=(moving.shape[1], moving.shape[0]),
         quality=quality,
     )
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the kernels for 8- and 16-bit, grey and colour images.
+
+    A worker process calls this once at start so that its first job does not pay the
+    compilation (seconds the first time on a machine, a fraction of a second from the cache).
+    """
+    levels = np.arange(64 * 64, dtype=np.int64).reshape(64, 64) * 37 % 251
+    pts = np.array([[2.0, 2.0], [60.0, 3.0], [4.0, 61.0], [58.0, 57.0], [30.0, 31.0]])
+    for dtype in (np.uint8, np.uint16):
+        grey = levels.astype(dtype)
+        for img in (grey, np.dstack([grey] * 3)):
+            register(img, img, (pts, pts + 0.5), {"epipolar_filter": False})

@@ -413,7 +413,7 @@ def init_process(
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
         if settings.runner == "core.pipeline:register":
-            from core.kernels import warm_up
+            from core.pipeline import warm_up
 
             warm_up()  # compile or load the numba kernels now, not in the first job
     except Exception:  # noqa: BLE001 (reported when a job runs)
