@@ -1,6 +1,6 @@
 """Trust report: automatic registration on scenes with exact truth, and its verdict.
 
-Run ``python -m bench.trust`` (about 3 minutes on 2 cores; ``--quick`` for a subset, ``--out
+Run ``python -m bench.trust`` (about 6 minutes on 2 cores; ``--quick`` for a subset, ``--out
 DIR`` for the output folder, default ``bench/results/trust/``). Every case is registered as a
 client without points would: :func:`core.pipeline.register` with default options (automatic
 matching, ``extent="frame"``). It writes ``report.md`` and ``results.json``.
@@ -243,7 +243,8 @@ def speed_section(repeat: int = 3) -> list[dict]:
     """Automatic registration time on 1024x768 pairs (best of ``repeat``)."""
     rows = []
     pairs = {"city, perspective, 1024x768 (synthetic)": lambda: make_scene(
-        "city", 3, size=(1024, 768), camera="perspective", radiometric="lighting", noise=3.0)}
+        "city", 3, size=(1024, 768), camera="perspective", radiometric="lighting", noise=3.0,
+        baseline=12.0)}
     root = realdata.default_root()
     facade = root / "lightglue_facade"
     for label, make in pairs.items():
