@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -80,13 +79,7 @@ from core.mesh import Edge, Mesh, edge_key
 from core.optimize import SearchResult, SwapStep, TriangleCache, quad_triples
 from core.similarity import ScoringImages, mutual_information, ssd
 
-if TYPE_CHECKING:
-    from core.options import RegistrationOptions
-
 ProgressFn = Callable[[float], None]
-
-BASELINES: tuple[str, ...] = ("morris-kanade", "nakatuji")
-"""Names accepted by :func:`run_baseline` (values of ``options.optimizer``)."""
 
 MK_RELATIVE_DECREASE = 1e-4
 """Morris-Kanade stops when the best swap lowers the global SSD by at most this fraction of it.
@@ -108,53 +101,6 @@ NAKATUJI_MAX_PASSES = 50
 """Upper bound on the random passes over the edges (bounds the run time)."""
 
 _QUAD_CHUNK = 4096
-
-
-def run_baseline(
-    name: str,
-    mesh: Mesh,
-    images: ScoringImages,
-    options: RegistrationOptions,
-    progress: ProgressFn | None = None,
-) -> SearchResult:
-    """Run a baseline optimizer on ``mesh`` in place.
-
-    Parameters
-    ----------
-    name : {"morris-kanade", "nakatuji"}
-        The baseline (see the module docstring).
-    mesh : Mesh
-        Modified in place by edge swaps.
-    images : ScoringImages
-        Prepared images (:func:`core.similarity.prepare_images`).
-    options : RegistrationOptions
-        Uses ``max_iterations`` (both) and ``seed`` (``nakatuji``).
-    progress : callable, optional
-        Called with a fraction in [0, 1]; it may raise to abort the search.
-
-    Returns
-    -------
-    SearchResult
-        Global MI (bits) and NMI before and after, one :class:`SwapStep` per accepted swap.
-
-    Raises
-    ------
-    ValueError
-        Unknown ``name``.
-    """
-    if name == "morris-kanade":
-        return morris_kanade_search(
-            mesh, images, max_iterations=options.max_iterations, progress=progress
-        )
-    if name == "nakatuji":
-        return nakatuji_search(
-            mesh,
-            images,
-            seed=options.seed,
-            max_iterations=options.max_iterations,
-            progress=progress,
-        )
-    raise ValueError(f"unknown baseline {name!r}; expected one of {BASELINES}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -48,7 +48,7 @@ from core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
 from core.errors import InputError, NotEnoughPointsError
 from core.imaging import check_image, to_gray8
 from core.options import RegistrationOptions
-from core.reliability import neighbour_outliers, uniqueness
+from core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
 
 #: Pairs needed for a mesh (one triangle).
 MIN_MESH_PAIRS = 3
@@ -93,8 +93,10 @@ class ConjugatePoints:
         Pairs left after each stage, in order. Automatic: ``detected`` (reference corners or
         keypoints), ``tracked`` / ``matched``, ``consistent`` (forward-backward check, or ratio
         and mutual checks), ``unique`` (correlation check: unambiguous, and the correlation
-        peak where the matcher put the point), ``epipolar`` (epipolar inliers), ``neighbours``
-        (not contradicted by the local map of their neighbours), ``kept``. Client: ``given``,
+        peak where the matcher put the point; ``resolved by neighbours`` of them were ambiguous
+        but confirmed by the local map of unambiguous pairs around them), ``epipolar``
+        (epipolar inliers), ``neighbours`` (not contradicted by the local map of their
+        neighbours), ``kept``. Client: ``given``,
         ``valid``, ``epipolar``, ``kept``. When ``auto`` fell back to SIFT, the tracker's own
         numbers are kept with an ``lk_`` prefix.
     rejected : dict of str to int
@@ -649,10 +651,19 @@ def _verify(matches: Matches, images: tuple[np.ndarray, np.ndarray], seed: int) 
     if prior is None:
         prior = _homography_from_matches(matches, seed)
     check = uniqueness(images[0], images[1], matches.reference, matches.moving, prior)
-    out = matches.subset(check.ok)
+    keep = check.ok.copy()
+    ambiguous = np.flatnonzero(check.cause == "ambiguous")
+    resolved = resolved_by_anchors(
+        matches.reference[keep], matches.moving[keep],
+        matches.reference[ambiguous], matches.moving[ambiguous],
+    )
+    keep[ambiguous[resolved]] = True
+    out = matches.subset(keep)
     for cause, n in check.counts().items():
+        n -= int(resolved.sum()) if cause == "ambiguous" else 0
         out.rejected[cause] = out.rejected.get(cause, 0) + n
     out.counts["unique"] = len(out.reference)
+    out.counts["resolved by neighbours"] = int(resolved.sum())
     return out
 
 

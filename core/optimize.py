@@ -154,17 +154,36 @@ def quad_triples(q: Quad, mesh: Mesh) -> tuple[Triple, Triple, Triple, Triple]:
     )
 
 
+@dataclass(frozen=True)
+class Cost:
+    """A consistency measure of a pixel set, from its summed joint histogram (and moments).
+
+    ``measure(hist, moments, bins)`` takes ``(..., M * M)`` histograms and ``(..., 6)`` moments
+    (None unless ``needs_moments``) and returns ``(...)`` values, larger is more consistent.
+    """
+
+    needs_moments: bool
+    measure: Callable[[np.ndarray, np.ndarray | None, int], np.ndarray]
+
+
+COSTS: dict[str, Cost] = {
+    "mi": Cost(False, lambda hist, moments, bins: mutual_information(hist, bins)[1]),
+    "ncc": Cost(True, lambda hist, moments, bins: ncc(moments)),
+}
+"""Cost name (value of ``options.cost``) -> measure: NMI (the paper) or NCC."""
+
+
 class QuadScorer:
     """Consistency gain of swapping internal edges, from cached triangle statistics.
 
-    ``cost`` is ``"mi"`` (NMI of the quad's joint histogram) or ``"ncc"``.
+    ``cost`` names an entry of :data:`COSTS`.
     """
 
     def __init__(self, cache: TriangleCache, cost: str) -> None:
-        if cost not in ("mi", "ncc"):
-            raise ValueError(f"unknown cost {cost!r}")
+        if cost not in COSTS:
+            raise ValueError(f"unknown cost {cost!r}; expected one of {sorted(COSTS)}")
         self.cache = cache
-        self.cost = cost
+        self.cost = COSTS[cost]
 
     def deltas(self, mesh: Mesh, edges: list[Edge]) -> np.ndarray:
         """Gain of each swap: consistency after minus before, same order as ``edges``."""
@@ -173,14 +192,15 @@ class QuadScorer:
         quads = [quad_triples(mesh.quad(e), mesh) for e in edges]
         self.cache.ensure(t for q in quads for t in q)
         rows = self.cache.rows(t for q in quads for t in q).reshape(-1, 4)
-        if self.cost == "mi":
-            h = self.cache.hist_rows(rows)
-            before = mutual_information(h[:, 0] + h[:, 1], self.cache.bins)[1]
-            after = mutual_information(h[:, 2] + h[:, 3], self.cache.bins)[1]
-        else:
-            m = self.cache.moment_rows(rows)
-            before = ncc(m[:, 0] + m[:, 1])
-            after = ncc(m[:, 2] + m[:, 3])
+        h = self.cache.hist_rows(rows)
+        m = self.cache.moment_rows(rows) if self.cost.needs_moments else None
+        bins = self.cache.bins
+        before = self.cost.measure(
+            h[:, 0] + h[:, 1], None if m is None else m[:, 0] + m[:, 1], bins
+        )
+        after = self.cost.measure(
+            h[:, 2] + h[:, 3], None if m is None else m[:, 2] + m[:, 3], bins
+        )
         return after - before
 
 
@@ -225,7 +245,9 @@ def greedy_search(
     candidates = mesh.swappable_edges()
     # Room for every triangle of the first pass and a few swaps' worth of new ones.
     capacity = len(current) + 2 * len(candidates) + 256
-    cache = TriangleCache(images, mesh, with_moments=(cost == "ncc"), capacity=capacity)
+    cache = TriangleCache(
+        images, mesh, with_moments=COSTS[cost].needs_moments, capacity=capacity
+    )
     scorer = QuadScorer(cache, cost)
     cache.ensure(current)
     deltas = scorer.deltas(mesh, candidates)

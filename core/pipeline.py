@@ -14,16 +14,13 @@ from core.errors import InputError, UnreliableResultError
 from core.extent import frame_vertices
 from core.imaging import check_image
 from core.matching import ConjugatePoints, find_conjugate_points
-from core.mesh import Mesh
-from core.optimize import SearchResult, greedy_search
+from core.optimize import SearchResult
+from core.optimizers import OPTIMIZERS
 from core.options import RegistrationOptions
 from core.quality import SCORING_SIDE, Quality, assess
 from core.similarity import (
-    ScoringImages,
-    mutual_information,
     prepare_images,
     reduced,
-    triangle_statistics,
 )
 from core.triangulation import TriangulationReport, initial_mesh
 from core.warp import warp_image
@@ -112,15 +109,6 @@ def parse_options(options: RegistrationOptions | Mapping[str, Any] | None) -> Re
         raise InputError(f"invalid option {name!r}: {err['msg']}", f"options.{name}") from exc
 
 
-def _unoptimized(images: ScoringImages, mesh: Mesh) -> SearchResult:
-    tris = mesh.triangles
-    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
-    mi, nmi = (float(v) for v in mutual_information(hist.sum(axis=0), images.bins))
-    return SearchResult(
-        initial_mi=mi, initial_nmi=nmi, final_mi=mi, final_nmi=nmi, stopped_because="optimizer none"
-    )
-
-
 def register(
     reference: np.ndarray,
     moving: np.ndarray,
@@ -205,23 +193,9 @@ def register(
 
     t = time.perf_counter()
     report("optimizing", 0.0)
-    if opts.optimizer == "none":
-        search = _unoptimized(images, mesh)
-    elif opts.optimizer == "greedy":
-        search = greedy_search(
-            mesh,
-            images,
-            cost=opts.cost,
-            epsilon=opts.epsilon,
-            max_iterations=opts.max_iterations,
-            progress=lambda f: report("optimizing", f),
-        )
-    else:
-        from core.baselines import run_baseline
-
-        search = run_baseline(
-            opts.optimizer, mesh, images, opts, progress=lambda f: report("optimizing", f)
-        )
+    search = OPTIMIZERS[opts.optimizer](
+        mesh, images, opts, lambda f: report("optimizing", f)
+    )
     timings["optimization_s"] = time.perf_counter() - t
     report("optimizing", 1.0)
 

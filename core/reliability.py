@@ -269,43 +269,119 @@ def neighbour_outliers(
     out = np.zeros(len(ref), bool)
     for _ in range(rounds):
         idx = np.flatnonzero(~out)
-        kk = min(k, len(idx) - 1)
-        if kk < 4:
+        if len(idx) < 5:
             break
         r, m = ref[idx], mov[idx]
-        dist, nb = cKDTree(r).query(r, kk + 1)
-        dist, nb = dist[:, 1:], nb[:, 1:]  # the point itself is not its own witness
-        # Only near neighbours are witnesses: far apart, sparse points may lie on different
-        # surfaces that no affine map joins.
-        near = dist <= LOCAL_REACH * np.median(dist[:, 0])
-        judged = near.sum(axis=1) >= 5
-        nb = np.where(near, nb, np.arange(len(r))[:, None])
-        centre = r[nb].mean(axis=1, keepdims=True)
-        X = np.concatenate([r[nb] - centre, np.ones((len(r), kk, 1))], axis=2)  # (n, kk, 3)
-        Y = m[nb]
-        # Trimmed least squares: a wrong neighbour must not bend the map that judges the pair.
-        weight = near.astype(np.float64)
-        for _ in range(2):
-            A = _weighted_affine(X, Y, weight)
-            res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
-            spread = _masked_median(res, near)[:, None]
-            weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
-        A = _weighted_affine(X, Y, weight)
-        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
-        spread = _masked_median(res, near)
-        xs = np.concatenate([r - centre[:, 0], np.ones((len(r), 1))], axis=1)
-        miss = np.linalg.norm(np.einsum("ni,nij->nj", xs, A) - m, axis=1)
+        fit = _local_fits(r, m, r, k=k, min_px=min_px, exclude_self=True)
+        miss = np.linalg.norm(fit.predict(r) - m, axis=1)
         # Support: neighbours moving like the pair (up to a 10 % strain over their distance).
         # Points beyond a depth step have their own side's neighbours for witnesses.
         disp = m - r
-        gap = np.linalg.norm(disp[nb] - disp[:, None, :], axis=2)
-        reach = np.maximum(min_px, 0.1 * np.linalg.norm(r[nb] - r[:, None, :], axis=2))
-        support = np.count_nonzero(near & (gap <= reach), axis=1)
-        bad = judged & (miss > min_px) & (miss > factor * spread) & (support < 2)
+        gap = np.linalg.norm(disp[fit.nb] - disp[:, None, :], axis=2)
+        reach = np.maximum(min_px, 0.1 * np.linalg.norm(r[fit.nb] - r[:, None, :], axis=2))
+        support = np.count_nonzero(fit.near & (gap <= reach), axis=1)
+        bad = fit.judged & (miss > min_px) & (miss > factor * fit.spread) & (support < 2)
         if not np.any(bad):
             break
         out[idx[bad]] = True
     return out
+
+
+def resolved_by_anchors(
+    anchor_reference: np.ndarray,
+    anchor_moving: np.ndarray,
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    k: int = 8,
+    tolerance: float = 1.5,
+) -> np.ndarray:
+    """Ambiguous pairs that their unambiguous neighbours confirm.
+
+    On a repeated pattern the correlation cannot tell the copies apart, but the unambiguous
+    pairs around it can: a trimmed affine map fitted to the ``k`` nearest anchors (within the
+    local reach) must predict the pair within ``tolerance`` pixels (or twice its own misfit on
+    the anchors, which must stay under a pixel). A pattern seen off by a period, or a pair
+    beyond a depth step from its anchors, is not confirmed.
+
+    Parameters
+    ----------
+    anchor_reference, anchor_moving : ndarray, shape (A, 2)
+        Pairs that passed the uniqueness check.
+    reference, moving : ndarray, shape (N, 2)
+        Ambiguous pairs.
+    k : int
+        Anchors per fit.
+    tolerance : float
+        Largest miss, pixels.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+    """
+    ar = np.asarray(anchor_reference, dtype=np.float64).reshape(-1, 2)
+    am = np.asarray(anchor_moving, dtype=np.float64).reshape(-1, 2)
+    qr = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    qm = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
+    if len(ar) < 5 or not len(qr):
+        return np.zeros(len(qr), bool)
+    fit = _local_fits(ar, am, qr, k=k, min_px=tolerance, exclude_self=False)
+    miss = np.linalg.norm(fit.predict(qr) - qm, axis=1)
+    return fit.judged & (fit.spread <= 1.0) & (miss <= np.maximum(tolerance, 2 * fit.spread))
+
+
+@dataclass(frozen=True)
+class _LocalFits:
+    """Trimmed affine maps fitted around query points; see :func:`_local_fits`."""
+
+    A: np.ndarray  # (n, 3, 2)
+    centre: np.ndarray  # (n, 2)
+    nb: np.ndarray  # (n, k) neighbour indices (the query's own index where not near)
+    near: np.ndarray  # (n, k) the neighbour is within reach
+    judged: np.ndarray  # (n,) at least five near neighbours
+    spread: np.ndarray  # (n,) median miss of the map on its near neighbours
+
+    def predict(self, points: np.ndarray) -> np.ndarray:
+        xs = np.concatenate([points - self.centre, np.ones((len(points), 1))], axis=1)
+        return np.einsum("ni,nij->nj", xs, self.A)
+
+
+def _local_fits(
+    ref: np.ndarray,
+    mov: np.ndarray,
+    query: np.ndarray,
+    *,
+    k: int,
+    min_px: float,
+    exclude_self: bool,
+) -> _LocalFits:
+    """Per query point, an affine map ``ref -> mov`` fitted to its ``k`` nearest pairs within
+    :data:`LOCAL_REACH` times the pairs' median spacing, by least squares trimmed twice of the
+    pairs it misses by over ``max(min_px, 2.5 x median miss)``: a wrong neighbour must not bend
+    the map that judges."""
+    skip = 1 if exclude_self else 0
+    kk = min(k, len(ref) - skip)
+    tree = cKDTree(ref)
+    spacing = float(np.median(tree.query(ref, 2)[0][:, 1]))
+    dist, nb = tree.query(query, kk + skip)
+    dist = dist.reshape(len(query), -1)[:, skip:]
+    nb = nb.reshape(len(query), -1)[:, skip:]
+    # Only near neighbours are witnesses: far apart, sparse points may lie on different
+    # surfaces that no affine map joins.
+    near = dist <= LOCAL_REACH * spacing
+    nb = np.where(near, nb, nb[:, :1])
+    centre = query
+    X = np.concatenate([ref[nb] - centre[:, None, :], np.ones((len(query), kk, 1))], axis=2)
+    Y = mov[nb]
+    weight = near.astype(np.float64)
+    for _ in range(2):
+        A = _weighted_affine(X, Y, weight)
+        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+        spread = _masked_median(res, near)[:, None]
+        weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
+    A = _weighted_affine(X, Y, weight)
+    res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+    return _LocalFits(A, centre, nb, near, near.sum(axis=1) >= 5, _masked_median(res, near))
 
 
 def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:

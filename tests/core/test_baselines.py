@@ -5,20 +5,21 @@ import pytest
 
 from bench.scenes import make_scene
 from core.baselines import (
-    BASELINES,
     morris_kanade_search,
     quad_inconsistency,
-    run_baseline,
     ssd_swap_changes,
 )
 from core.mesh import Mesh
 from core.optimize import TriangleCache
+from core.optimizers import OPTIMIZERS
 from core.options import RegistrationOptions
 from core.pipeline import register
 from core.raster import label_image
 from core.similarity import prepare_images, ssd, triangle_statistics
 from core.triangulation import initial_mesh
 from tests.core.synthetic import book_points, open_book
+
+BASELINES = ("morris-kanade", "nakatuji")
 
 
 @pytest.fixture(scope="module")
@@ -135,7 +136,7 @@ def test_nakatuji_max_iterations_and_cancel(scene):
     mesh, _ = initial_mesh(scene.points_reference, scene.points_moving, 25)
     images = prepare_images(scene.reference, scene.moving, 16)
     with pytest.raises(KeyboardInterrupt):
-        run_baseline("nakatuji", mesh, images, RegistrationOptions(), progress=progress)
+        OPTIMIZERS["nakatuji"](mesh, images, RegistrationOptions(), progress)
     assert all(0.0 <= f <= 1.0 for f in seen)
 
 
@@ -161,8 +162,6 @@ def test_template_detects_the_crease_crossing_diagonal():
         assert swapped < 0.05
 
 
-def test_unknown_baseline():
-    mesh, _ = initial_mesh(*book_points(), 25)
-    images = prepare_images(*open_book(), 16)
-    with pytest.raises(ValueError, match="unknown baseline"):
-        run_baseline("simulated-annealing", mesh, images, RegistrationOptions())
+def test_the_optimizer_table_and_the_option_list_agree():
+    allowed = RegistrationOptions.model_fields["optimizer"].annotation.__args__
+    assert set(allowed) == set(OPTIMIZERS)

@@ -152,3 +152,10 @@ def test_search_never_cycles():
     assert len(set(removed)) == len(removed)
     # No swap re-creates an edge an earlier swap removed.
     assert all(s.added not in removed[: s.iteration - 1] for s in res.steps)
+
+
+def test_the_cost_table_and_the_option_list_agree():
+    from core.optimize import COSTS
+    from core.options import RegistrationOptions
+
+    assert set(RegistrationOptions.model_fields["cost"].annotation.__args__) == set(COSTS)

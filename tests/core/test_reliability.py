@@ -90,3 +90,23 @@ def test_automatic_matching_refuses_a_checkerboard_seen_off_by_a_period():
 def test_neighbour_check_needs_enough_points(k):
     ref = np.random.default_rng(0).uniform(0, 100, (k, 2))
     assert not neighbour_outliers(ref, ref + 1).any()
+
+
+def test_ambiguous_pairs_confirmed_by_their_anchors_are_resolved_but_a_period_off_are_not():
+    from core.reliability import resolved_by_anchors
+
+    rng = np.random.default_rng(3)
+    A = np.array([[1.02, 0.03], [-0.02, 0.98]])
+
+    def truth(p):
+        return p @ A.T + [12.0, -4.0]
+
+    anchors = rng.uniform(0, 300, (80, 2))
+    ambiguous = rng.uniform(20, 280, (30, 2))
+    right = truth(ambiguous) + rng.normal(0, 0.2, (30, 2))
+    off = right + [24.0, 0.0]  # the next copy of the pattern
+    anchor_mov = truth(anchors) + rng.normal(0, 0.2, (80, 2))
+    assert resolved_by_anchors(anchors, anchor_mov, ambiguous, right).mean() > 0.9
+    assert not resolved_by_anchors(anchors, anchor_mov, ambiguous, off).any()
+    # Without anchors nothing is resolved.
+    assert not resolved_by_anchors(anchors[:3], anchor_mov[:3], ambiguous, right).any()
