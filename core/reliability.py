@@ -20,6 +20,7 @@ the centre of the top-left pixel.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -85,12 +86,10 @@ def _peaks(surface: np.ndarray, centre: tuple[float, float]) -> tuple[float, flo
     """Best value, second-best local maximum (more than 2 px from the best) and the best one's
     distance from ``centre``."""
     _, best, _, loc = cv2.minMaxLoc(surface)
-    mask = (surface >= cv2.dilate(surface, _KERNEL3)).view(np.uint8)
+    mask = cv2.compare(surface, cv2.dilate(surface, _KERNEL3), cv2.CMP_GE)
     cv2.circle(mask, loc, 2, 0, -1)
-    _, second, _, _ = cv2.minMaxLoc(surface, mask)
-    if not mask.any():
-        second = -1.0
-    return best, second, float(np.hypot(loc[0] - centre[0], loc[1] - centre[1]))
+    second = cv2.minMaxLoc(surface, mask)[1] if cv2.countNonZero(mask) else -1.0
+    return best, second, math.hypot(loc[0] - centre[0], loc[1] - centre[1])
 
 
 def _check_scale(
