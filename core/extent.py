@@ -203,9 +203,11 @@ def choose_by_agreement(
     ref_all = np.concatenate([reference, border])
     mov_all = np.concatenate([moving, candidates[0]])
     tris = Delaunay(ref_all).simplices
+    # Where the candidates agree within a pixel there is nothing to choose.
+    spread = np.linalg.norm(candidates - candidates[:1], axis=2).max(axis=0)
     rows, ref_tris, mov_tris = [], [], []
     for c in range(len(candidates)):
-        for v in range(m):
+        for v in np.flatnonzero(spread > 1.0):
             incident = tris[np.any(tris == n + v, axis=1)]
             if not len(incident):
                 continue
