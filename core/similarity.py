@@ -117,6 +117,17 @@ def reduced(images: ScoringImages, max_side: int) -> tuple[ScoringImages, float]
     return prepare_images(ref, mov, images.bins), scale
 
 
+def smoothed(images: ScoringImages, sigma: float) -> ScoringImages:
+    """Both images blurred by a Gaussian of ``sigma`` pixels, prepared again for scoring."""
+    ref = images.reference_values.reshape(images.shape)
+
+    def blur(gray: np.ndarray) -> np.ndarray:
+        out = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), sigma)
+        return np.clip(np.rint(out), 0, np.iinfo(gray.dtype).max).astype(gray.dtype)
+
+    return prepare_images(blur(ref), blur(images.moving), images.bins)
+
+
 def triangle_statistics(
     images: ScoringImages,
     reference_triangles: np.ndarray,

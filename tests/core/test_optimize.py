@@ -159,3 +159,18 @@ def test_the_cost_table_and_the_option_list_agree():
     from core.options import RegistrationOptions
 
     assert set(RegistrationOptions.model_fields["cost"].annotation.__args__) == set(COSTS)
+
+
+def test_greedy_pyramid_runs_sharp_last_and_reports_on_the_images():
+    from core.pipeline import register
+    from tests.core.synthetic import book_points, open_book
+
+    reference, moving = open_book(seed=2)
+    rp, mp = book_points()
+    plain = register(reference, moving, (rp, mp), {"optimizer": "none", "extent": "hull"})
+    pyr = register(reference, moving, (rp, mp),
+                   {"optimizer": "greedy-pyramid", "extent": "hull"})
+    assert pyr.search.initial_mi == pytest.approx(plain.search.initial_mi)
+    assert [s.iteration for s in pyr.search.steps] == list(range(1, len(pyr.search.steps) + 1))
+    assert pyr.search.steps  # the crease-crossing diagonals get swapped
+    assert pyr.search.final_mi > pyr.search.initial_mi
