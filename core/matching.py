@@ -214,7 +214,7 @@ def _pad_to(gray: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return cv2.copyMakeBorder(gray, 0, dh, 0, dw, cv2.BORDER_CONSTANT, value=0)
 
 
-def _inside(points: np.ndarray, shape: tuple[int, ...], margin: float = 0.0) -> np.ndarray:
+def inside_image(points: np.ndarray, shape: tuple[int, ...], margin: float = 0.0) -> np.ndarray:
     """Mask of the points inside ``[-0.5 - margin, size - 0.5 + margin]`` in x and y."""
     h, w = shape[:2]
     x, y = points[:, 0], points[:, 1]
@@ -352,7 +352,7 @@ def estimate_global_prior(
     if len(corners) < min_inliers:
         return None
     tracked, ok, fb = _lk_pair(_pad_to(a, shape), _pad_to(b, shape), corners, 21, 4)
-    ok &= (fb < 0.5) & _inside(tracked, b.shape)
+    ok &= (fb < 0.5) & inside_image(tracked, b.shape)
     if np.count_nonzero(ok) < min_inliers:
         return None
     src = _from_level(corners[ok], sa)
@@ -449,12 +449,12 @@ def match_lk(
     counts["detected"] = len(corners)
     score = np.linspace(1.0, 0.0, len(corners), endpoint=False) if len(corners) else np.empty(0)
     # Corners whose prior position falls outside the moving image cannot be tracked.
-    inside = _inside(_apply_h(H, corners), mov_gray.shape, margin=-2.0)
+    inside = inside_image(_apply_h(H, corners), mov_gray.shape, margin=-2.0)
     rejected["outside image"] = int(np.count_nonzero(~inside))
     corners, score = corners[inside], score[inside]
     tracked, ok, fb = _lk_pair(a, warped, corners, win, levels)
     moving = _apply_h(H, tracked)
-    ok_in = ok & _inside(moving, mov_gray.shape)
+    ok_in = ok & inside_image(moving, mov_gray.shape)
     rejected["lost"] = int(np.count_nonzero(~ok))
     rejected["outside image"] += int(np.count_nonzero(ok & ~ok_in))
     counts["tracked"] = int(np.count_nonzero(ok_in))
@@ -855,8 +855,8 @@ def _client(
     rejected: dict[str, int] = {}
     finite = np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(mov), axis=1)
     rejected["not finite"] = int(np.count_nonzero(~finite))
-    inside = finite & _inside(ref, reference.shape, BORDER_TOLERANCE)
-    inside &= _inside(mov, moving.shape, BORDER_TOLERANCE)
+    inside = finite & inside_image(ref, reference.shape, BORDER_TOLERANCE)
+    inside &= inside_image(mov, moving.shape, BORDER_TOLERANCE)
     rejected["outside image"] = int(np.count_nonzero(finite & ~inside))
     idx = np.flatnonzero(inside)
     # A reference point given twice cannot be a mesh vertex twice: keep its first pair.

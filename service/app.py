@@ -13,6 +13,7 @@ from fastapi.openapi.utils import get_openapi
 
 from service import __version__
 from service.api import jobs, system
+from service.auth import load_api_keys
 from service.deps import Services
 from service.maintenance import Janitor
 from service.metrics import Metrics
@@ -68,6 +69,7 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         resolve_runner(settings.runner)  # a misconfigured runner stops the start, loudly
+        api_keys = load_api_keys(settings)  # so do malformed keys (the message shows no key)
         storage = LocalStorage(settings.data_dir)
         storage.prepare()
         store = JobStore.from_url(settings.resolved_database_url)
@@ -84,9 +86,11 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         janitor.recover()  # jobs of a previous process that died go back to the queue
         queue.start()
         janitor.start()
-        app.state.services = Services(settings, store, storage, queue, metrics)
+        app.state.services = Services(settings, store, storage, queue, metrics, api_keys)
         log.info(
-            "pwlreg ready: data in %s, %d worker(s)", settings.data_dir.resolve(), settings.workers
+            "pwlreg ready: data in %s, %d worker(s), %s", settings.data_dir.resolve(),
+            settings.workers,
+            f"API keys of {len(api_keys)} client(s)" if api_keys else "no API keys (open access)",
         )
         try:
             yield
@@ -134,9 +138,16 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
         for operation in path.values():
             for code, response in operation.get("responses", {}).items():
                 content = response.get("content", {})
-                if code[0] not in "45" or "application/json" not in content:
+                if code[0] not in "45" or not content:
                     continue
-                media = content.pop("application/json")
+                # FastAPI files a problem model under the route's media type (text/plain for
+                # /metrics): every error answer is a problem document.
+                kind = "application/json" if "application/json" in content else next(iter(content))
+                if kind != "application/json" and not content[kind].get("schema", {}).get(
+                    "$ref", ""
+                ).endswith("/ProblemDetails"):
+                    continue
+                media = content.pop(kind)
                 if media.get("schema", {}).get("$ref", "").endswith("/HTTPValidationError"):
                     # FastAPI's own 422 answer: ours is a problem document.
                     media = {"schema": problem_ref}

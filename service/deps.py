@@ -1,14 +1,14 @@
 """Dependencies of the routers: the service objects built by the application's lifespan.
 
 The routers receive them through FastAPI's dependency injection (``ServicesDep``), never as
-module globals, so that an application instance owns its store, storage, queue, settings and
-metrics, and tests can build one with other parts.
+module globals, so that an application instance owns its store, storage, queue, settings,
+metrics and API keys, and tests can build one with other parts.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from fastapi import Depends, Request
 
@@ -17,6 +17,9 @@ from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import LocalStorage
 from service.store import JobStore
+
+if TYPE_CHECKING:
+    from service.auth import ApiKeys
 
 
 @dataclass
@@ -28,6 +31,8 @@ class Services:
     storage: LocalStorage
     queue: JobQueue
     metrics: Metrics
+    api_keys: ApiKeys
+    """The configured API keys (empty: open access, every caller is the anonymous client)."""
 
 
 def get_services(request: Request) -> Services:

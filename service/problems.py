@@ -128,6 +128,17 @@ def idempotency_conflict(detail: str, job_id: str) -> Problem:
     )
 
 
+def insufficient_storage(detail: str) -> Problem:
+    return Problem(507, "insufficient-storage", "Insufficient storage", detail)
+
+
+def too_many_jobs(detail: str, retry_after: int) -> Problem:
+    return Problem(
+        429, "too-many-jobs", "Too many queued jobs", detail,
+        headers={"Retry-After": str(retry_after)}, retry_after=retry_after,
+    )
+
+
 def result_not_ready(job_id: str, status: str) -> Problem:
     detail = {
         "accepted": "the job is waiting for a worker; poll the job until its status is "
@@ -175,14 +186,20 @@ def from_validation_error(exc: ValidationError, prefix: str | None = None) -> Pr
 
 _RESPONSE_TEXT = {
     400: "Malformed request body.",
-    404: "No such job.",
+    401: "The server has API keys and the request has no `Authorization: Bearer <key>` header, "
+    "a malformed one or an unknown key (`WWW-Authenticate: Bearer`).",
+    404: "No such job (or a job of another client).",
     409: "The job has not succeeded (yet); no result.",
     413: "A part of the upload is over the size limit.",
     415: "Not multipart/form-data, or a file that is not an image of a supported kind, or a "
     "truncated or damaged one.",
     422: "Invalid input: missing or unknown part, bad options or points, image over the pixel "
-    "limit, bad query parameter, idempotency key reused with another request.",
+    "limit, points outside their image, fewer than 3 pairs or collinear, bad query parameter, "
+    "idempotency key reused with another request.",
+    429: "Too many jobs waiting for a worker, in all or of this client; try again after "
+    "`Retry-After` seconds.",
     503: "Not ready: the failed checks are listed in `checks`.",
+    507: "Not enough free disk space for the upload; nothing of it was kept.",
 }
 
 

@@ -102,6 +102,36 @@ class Settings(BaseSettings):
         gt=0,
         description="Interval of the maintenance pass (expired leases, retention), in seconds.",
     )
+    api_keys: str | None = Field(
+        None,
+        description="API keys, comma-separated, each 'name:key' or a bare 'key' (named client1, "
+        "client2, ... in order). With any key configured, every endpoint but /healthz, /readyz, "
+        "/docs and /openapi.json needs 'Authorization: Bearer <key>', and each client sees only "
+        "its own jobs. Default: no keys, no access control.",
+    )
+    api_keys_file: Path | None = Field(
+        None,
+        description="Text file of API keys, one 'name key' per line ('#' starts a comment), "
+        "added to api_keys.",
+    )
+    max_queued_jobs: int = Field(
+        1000,
+        ge=1,
+        description="Most jobs waiting for a worker (status accepted) in all; a submission "
+        "beyond is refused with 429 and Retry-After.",
+    )
+    max_queued_per_client: int = Field(
+        100,
+        ge=1,
+        description="Most jobs waiting for a worker per API client (with API keys only); a "
+        "submission beyond is refused with 429 and Retry-After.",
+    )
+    min_free_bytes: int = Field(
+        256 * 1024 * 1024,
+        ge=0,
+        description="Free space the data directory must keep: a submission (its declared "
+        "length included) that would leave less is refused with 507 before it is received.",
+    )
     runner: str = Field(
         "core.pipeline:register",
         description="Import path (module:function) of the registration function the workers "

@@ -92,6 +92,7 @@ class JobRow(Base):
     has_points: Mapped[bool] = mapped_column(Boolean, default=False)
     idempotency_key: Mapped[str | None] = mapped_column(String(255), unique=True)
     request_hash: Mapped[str | None] = mapped_column(String(64))
+    owner: Mapped[str | None] = mapped_column(String(64))
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     max_attempts: Mapped[int] = mapped_column(Integer)
     lease_owner: Mapped[str | None] = mapped_column(String(128))
@@ -104,6 +105,7 @@ class JobRow(Base):
     __table_args__ = (
         Index("ix_jobs_status_created", "status", "created"),
         Index("ix_jobs_created", "created"),
+        Index("ix_jobs_owner_status", "owner", "status"),
     )
 
 
@@ -122,6 +124,7 @@ class Job:
     has_points: bool
     idempotency_key: str | None
     request_hash: str | None
+    owner: str | None
     attempts: int
     max_attempts: int
     lease_owner: str | None
@@ -193,8 +196,8 @@ class JobStore:
         return cls(make_engine(url))
 
     def create_schema(self) -> None:
-        """Create the tables if they do not exist, and add the nullable columns a database made
-        by an earlier version lacks (``quality``)."""
+        """Create the tables if they do not exist, and add the nullable columns (``quality``,
+        ``owner``) and the indexes a database made by an earlier version lacks."""
         Base.metadata.create_all(self.engine)
         present = {c["name"] for c in inspect(self.engine).get_columns(JobRow.__tablename__)}
         with self.engine.begin() as conn:
@@ -202,6 +205,10 @@ class JobStore:
                 if column.name not in present and column.nullable:
                     kind = column.type.compile(dialect=self.engine.dialect)
                     conn.execute(text(f"ALTER TABLE jobs ADD COLUMN {column.name} {kind}"))
+        indexes = {i["name"] for i in inspect(self.engine).get_indexes(JobRow.__tablename__)}
+        for index in JobRow.__table__.indexes:
+            if index.name not in indexes:
+                index.create(self.engine, checkfirst=True)
 
     def dispose(self) -> None:
         """Close the connections of the engine."""
@@ -242,8 +249,12 @@ class JobStore:
         max_attempts: int,
         idempotency_key: str | None = None,
         request_hash: str | None = None,
+        owner: str | None = None,
     ) -> tuple[Job, bool]:
         """Insert an accepted job, or return the job already created with the same key.
+
+        ``owner`` is the API client submitting it (None without API keys); the caller scopes
+        ``idempotency_key`` to the owner (see :func:`service.api.jobs.scoped_key`).
 
         Returns
         -------
@@ -271,6 +282,7 @@ class JobStore:
             has_points=has_points,
             idempotency_key=idempotency_key,
             request_hash=request_hash,
+            owner=owner,
             attempts=0,
             max_attempts=max_attempts,
             created=now,
@@ -329,8 +341,10 @@ class JobStore:
         statuses: Iterable[JobStatus] = (),
         limit: int = 20,
         offset: int = 0,
+        owner: str | None = None,
     ) -> tuple[list[Job], int]:
-        """Jobs newest first, optionally only those with one of ``statuses``.
+        """Jobs newest first, optionally only those with one of ``statuses`` and only those of
+        ``owner`` (None: every job).
 
         Returns
         -------
@@ -345,6 +359,9 @@ class JobStore:
         if wanted:
             query = query.where(JobRow.status.in_(wanted))
             count = count.where(JobRow.status.in_(wanted))
+        if owner is not None:
+            query = query.where(JobRow.owner == owner)
+            count = count.where(JobRow.owner == owner)
         query = query.order_by(JobRow.created.desc(), JobRow.id.desc()).limit(limit).offset(offset)
         with self._sessions() as session:
             rows = session.scalars(query).all()
@@ -361,6 +378,17 @@ class JobStore:
         for status, n in pairs:
             counts[JobStatus(status)] = int(n)
         return counts
+
+    def count_accepted(self, owner: str | None = None) -> int:
+        """Number of jobs waiting for a worker, only those of ``owner`` if given."""
+        query = (
+            select(func.count()).select_from(JobRow)
+            .where(JobRow.status == JobStatus.accepted.value)
+        )
+        if owner is not None:
+            query = query.where(JobRow.owner == owner)
+        with self._sessions() as session:
+            return int(session.execute(query).scalar_one())
 
     def next_accepted(self, limit: int, exclude: Sequence[str] = ()) -> list[str]:
         """Ids of the oldest accepted jobs (first in, first out), skipping ``exclude``."""

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
+import math
 import re
+import shutil
 import uuid
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
 
+import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
@@ -17,22 +21,27 @@ from pydantic import ValidationError
 
 from core.errors import InputError
 from core.io import load_points, probe_image
+from core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
 from core.options import RegistrationOptions
+from core.triangulation import delaunay_triangles
+from service.auth import ClientDep
 from service.deps import Services, ServicesDep
 from service.problems import (
     Problem,
     from_input_error,
     from_validation_error,
     idempotency_conflict,
+    insufficient_storage,
     invalid_input,
     not_found,
     problem_responses,
     result_not_ready,
+    too_many_jobs,
 )
 from service.schemas import JobList, Link, StatusInfo
 from service.storage import IMAGES, RESULTS
 from service.store import IdempotencyConflict, Job, JobStatus
-from service.uploads import ReceivedForm, receive_form
+from service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -83,9 +92,11 @@ def status_info(job: Job, request: Request) -> StatusInfo:
     )
 
 
-def _get_job(services: Services, job_id: str) -> Job:
+def _get_job(services: Services, job_id: str, client: str | None) -> Job:
+    """The job ``job_id`` if the client may see it: its own job, or any job without API keys
+    (``client`` None). Another client's job is answered exactly like a missing one."""
     job = services.store.get(job_id)
-    if job is None:
+    if job is None or (client is not None and job.owner != client):
         raise not_found(f"no job {job_id!r}")
     return job
 
@@ -110,12 +121,57 @@ def parse_options(data: bytes) -> dict[str, Any]:
         raise from_validation_error(exc, prefix="options") from None
 
 
+def check_points(
+    reference: np.ndarray, moving: np.ndarray, sizes: dict[str, tuple[int, int]]
+) -> None:
+    """Refuse, from the request alone, client points the registration could not use: fewer
+    than :data:`core.matching.MIN_MESH_PAIRS` pairs, a point outside its image (beyond
+    :data:`core.matching.BORDER_TOLERANCE` pixels; ``sizes`` are the images' ``(width,
+    height)``), or all reference (or all moving) points collinear, so that no triangle can be
+    built.
+
+    Raises
+    ------
+    Problem
+        422 with ``field`` ``points``.
+    """
+    if len(reference) < MIN_MESH_PAIRS:
+        raise invalid_input(
+            f"points: {len(reference)} pair(s) given, at least {MIN_MESH_PAIRS} are needed to "
+            "build a mesh",
+            "points",
+        )
+    for name, pts in (("reference", reference), ("moving", moving)):
+        width, height = sizes[name]
+        outside = np.flatnonzero(~inside_image(pts, (height, width), BORDER_TOLERANCE))
+        if outside.size:
+            i = int(outside[0])
+            x, y = pts[i]
+            raise invalid_input(
+                f"points: {outside.size} {name} point(s) outside the {width}x{height} {name} "
+                f"image, the first is pair {i} at ({x:g}, {y:g}); coordinates are pixels, x "
+                f"right, y down, (0, 0) the centre of the top-left pixel, within "
+                f"{BORDER_TOLERANCE:g} px of the border",
+                "points",
+            )
+    for name, pts in (("reference", reference), ("moving", moving)):
+        try:
+            delaunay_triangles(pts)
+        except InputError:
+            raise invalid_input(
+                f"points: the {name} points are all collinear (or coincide): no triangle can be "
+                "built; give at least three points that span an area in both images",
+                "points",
+            ) from None
+
+
 def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, Any], bool]:
     """Check every part of a submission without decoding the images.
 
     The images' kind, size (against ``max_pixels``) and structure are checked from their bytes
     (:func:`core.io.probe_image`); decoding them is left to the worker, so that the API process
-    does little CPU work per upload and the worker pool is what scales.
+    does little CPU work per upload and the worker pool is what scales. Client points are
+    checked against the images' sizes (:func:`check_points`).
 
     Returns
     -------
@@ -140,12 +196,17 @@ def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, 
     )
     has_points = "points" in form.parts
     try:
-        if has_points:
+        points = (
             load_points(form.parts["points"].path.read_bytes(), field="points")
-        for name in IMAGES:
-            probe_image(form.parts[name].path, max_pixels, field=name)
+            if has_points
+            else None
+        )
+        sizes = {name: probe_image(form.parts[name].path, max_pixels, field=name)
+                 for name in IMAGES}
     except InputError as exc:
         raise from_input_error(exc) from None
+    if points is not None:
+        check_points(points[0], points[1], sizes)
     return options, has_points
 
 
@@ -159,10 +220,76 @@ def _check_key(key: str | None) -> str | None:
     return key
 
 
+def scoped_key(key: str | None, client: str | None) -> str | None:
+    """The idempotency key as stored: the client's own key without API keys, else
+    ``<client>/<SHA-256 of the key>``, so that two clients' keys never meet (and the stored
+    key stays short)."""
+    if key is None or client is None:
+        return key
+    return f"{client}/{hashlib.sha256(key.encode()).hexdigest()}"
+
+
+def _retry_after(services: Services, queued: int) -> int:
+    """Seconds a refused client should wait: about the time the workers need to take the jobs
+    ahead of it, counted as one second per job and worker, between 1 and 60."""
+    return max(1, min(60, math.ceil(queued / services.settings.workers)))
+
+
+def check_queue(services: Services, client: str | None) -> None:
+    """Refuse a new job (429 with ``Retry-After``) while too many jobs wait for a worker, in
+    all or of this client (the per-client limit applies with API keys only)."""
+    settings, store = services.settings, services.store
+    queued = store.count_accepted()
+    if queued >= settings.max_queued_jobs:
+        raise too_many_jobs(
+            f"{queued} jobs are waiting for a worker, the limit of the service is "
+            f"{settings.max_queued_jobs}; try again later",
+            _retry_after(services, queued),
+        )
+    if client is not None:
+        mine = store.count_accepted(client)
+        if mine >= settings.max_queued_per_client:
+            raise too_many_jobs(
+                f"{mine} of your jobs are waiting for a worker, the limit per client is "
+                f"{settings.max_queued_per_client}; try again when some have started",
+                _retry_after(services, queued),
+            )
+
+
+def check_disk(services: Services, content_length: str | None) -> None:
+    """Refuse an upload (507) that would leave less than ``min_free_bytes`` free in the data
+    directory (its declared length counted when known)."""
+    settings = services.settings
+    need = settings.min_free_bytes
+    if need <= 0:
+        return
+    try:
+        declared = max(0, int(content_length)) if content_length is not None else 0
+    except ValueError:
+        declared = 0  # refused as malformed by the receiver
+    if declared <= len(FORM_PARTS) * settings.max_upload_bytes + OVERHEAD_BYTES:
+        need += declared  # a longer body is refused with 413 by the receiver
+    free = shutil.disk_usage(settings.data_dir).free
+    if free < need:
+        raise insufficient_storage(
+            "the service has not enough free disk space for this upload; try again later"
+        )
+
+
+def _precheck(
+    services: Services, client: str | None, key: str | None, content_length: str | None
+) -> None:
+    """The limits checked before the upload is received: a refused client sends nothing."""
+    if key is None or services.store.get_by_idempotency_key(key) is None:
+        check_queue(services, client)  # a replay of a known key is answered whatever the queue
+    check_disk(services, content_length)
+
+
 def _accept(
-    services: Services, form: ReceivedForm, staging: Path, key: str | None
+    services: Services, form: ReceivedForm, staging: Path, key: str | None, client: str | None
 ) -> tuple[Job, bool]:
-    """Validate and store a submission; returns the job and whether it is new."""
+    """Validate and store a submission; returns the job and whether it is new. ``key`` is the
+    scoped idempotency key (:func:`scoped_key`)."""
     store, storage, settings = services.store, services.storage, services.settings
     fingerprint = form.fingerprint()
     if key is not None:
@@ -174,6 +301,7 @@ def _accept(
                     existing.id,
                 )
             return existing, False
+    check_queue(services, client)  # again: other jobs may have come while this one uploaded
     options, has_points = validate_submission(form, settings.max_pixels)
     job_id = uuid.uuid4().hex
     # Files first, then the row: a crash in between leaves files without a row (swept later),
@@ -187,6 +315,7 @@ def _accept(
             settings.max_attempts,
             idempotency_key=key,
             request_hash=fingerprint,
+            owner=client,
         )
     except IdempotencyConflict as exc:
         storage.remove(job_id)
@@ -254,7 +383,7 @@ _FORM_SCHEMA = {
                 }
             },
         },
-        **problem_responses(400, 413, 415, 422),
+        **problem_responses(400, 401, 413, 415, 422, 429, 507),
     },
     openapi_extra={
         "requestBody": {
@@ -274,6 +403,7 @@ async def submit_job(
     request: Request,
     response: Response,
     services: ServicesDep,
+    client: ClientDep,
     idempotency_key: Annotated[
         str | None,
         Header(
@@ -283,25 +413,26 @@ async def submit_job(
         ),
     ] = None,
 ) -> StatusInfo:
-    key = _check_key(idempotency_key)
+    key = scoped_key(_check_key(idempotency_key), client)
+    content_length = request.headers.get("content-length")
+    await run_in_threadpool(_precheck, services, client, key, content_length)
     storage = services.storage
     staging = await run_in_threadpool(storage.new_staging)
     try:
         form = await receive_form(
             request.headers.get("content-type"),
-            request.headers.get("content-length"),
+            content_length,
             request.stream(),
             staging,
             FORM_PARTS,
             services.settings.max_upload_bytes,
         )
-        job, created = await run_in_threadpool(_accept, services, form, staging, key)
+        job, created = await run_in_threadpool(_accept, services, form, staging, key, client)
     except OSError as exc:
         if exc.errno != errno.ENOSPC:
             raise
-        raise Problem(
-            507, "insufficient-storage", "Insufficient storage",
-            "the service has no disk space left for this upload; try again later",
+        raise insufficient_storage(
+            "the service has no disk space left for this upload; try again later"
         ) from None
     finally:
         await run_in_threadpool(storage.discard, staging)
@@ -320,11 +451,12 @@ async def submit_job(
     summary="List jobs",
     description="Jobs newest first, a page at a time, optionally only those with given "
     "statuses (repeat `status`).",
-    responses=problem_responses(422),
+    responses=problem_responses(401, 422),
 )
 def list_jobs(
     request: Request,
     services: ServicesDep,
+    client: ClientDep,
     status: Annotated[
         list[JobStatus] | None,
         Query(description="Only jobs with one of these statuses (repeatable).",
@@ -336,7 +468,7 @@ def list_jobs(
     ] = 0,
 ) -> JobList:
     statuses = status or []
-    jobs, matched = services.store.list(statuses, limit=limit, offset=offset)
+    jobs, matched = services.store.list(statuses, limit=limit, offset=offset, owner=client)
     base = f"{_root(request)}/v1/jobs"
 
     def page(at: int) -> str:
@@ -369,10 +501,12 @@ def list_jobs(
     summary="Status of a job",
     description="Status, stage and progress of a job; once successful, links to every result. "
     "A failed job carries the reason as a problem document in `error`.",
-    responses=problem_responses(404),
+    responses=problem_responses(401, 404),
 )
-def get_job(job_id: str, request: Request, services: ServicesDep) -> StatusInfo:
-    return status_info(_get_job(services, job_id), request)
+def get_job(
+    job_id: str, request: Request, services: ServicesDep, client: ClientDep
+) -> StatusInfo:
+    return status_info(_get_job(services, job_id, client), request)
 
 
 @router.delete(
@@ -383,10 +517,10 @@ def get_job(job_id: str, request: Request, services: ServicesDep) -> StatusInfo:
     description="Cancel a queued or running job (the worker stops at its next progress check) "
     "and remove its files, inputs and results. The job stays listed as dismissed until the "
     "retention removes it. Dismissing a dismissed job does nothing.",
-    responses={204: {"description": "Dismissed."}, **problem_responses(404)},
+    responses={204: {"description": "Dismissed."}, **problem_responses(401, 404)},
 )
-def dismiss_job(job_id: str, services: ServicesDep) -> Response:
-    _get_job(services, job_id)
+def dismiss_job(job_id: str, services: ServicesDep, client: ClientDep) -> Response:
+    _get_job(services, job_id, client)
     services.store.dismiss(job_id)
     services.storage.remove(job_id)
     return Response(status_code=204)
@@ -395,8 +529,8 @@ def dismiss_job(job_id: str, services: ServicesDep) -> Response:
 # --- results -------------------------------------------------------------------------------
 
 
-def _result(services: Services, job_id: str, key: str) -> FileResponse:
-    job = _get_job(services, job_id)
+def _result(services: Services, job_id: str, key: str, client: str | None) -> FileResponse:
+    job = _get_job(services, job_id, client)
     if job.status != JobStatus.successful:
         raise result_not_ready(job.id, job.status.value)
     path = services.storage.result_path(job_id, key)
@@ -424,10 +558,10 @@ def _result(services: Services, job_id: str, key: str) -> FileResponse:
     "swaps, the parameters and the matching results (pixel coordinates, x right, y down, (0, 0) "
     "the centre of the top-left pixel).",
     responses={200: {"content": {"application/json": {}}, "description": "mesh.json"},
-               **problem_responses(404, 409)},
+               **problem_responses(401, 404, 409)},
 )
-def get_mesh(job_id: str, services: ServicesDep) -> FileResponse:
-    return _result(services, job_id, "mesh")
+def get_mesh(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
+    return _result(services, job_id, "mesh", client)
 
 
 @router.get(
@@ -437,10 +571,10 @@ def get_mesh(job_id: str, services: ServicesDep) -> FileResponse:
     description="The moving image warped onto the reference, PNG with alpha (opaque inside the "
     "mesh).",
     responses={200: {"content": {"image/png": {}}, "description": "registered.png"},
-               **problem_responses(404, 409)},
+               **problem_responses(401, 404, 409)},
 )
-def get_registered(job_id: str, services: ServicesDep) -> FileResponse:
-    return _result(services, job_id, "registered")
+def get_registered(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
+    return _result(services, job_id, "registered", client)
 
 
 @router.get(
@@ -450,7 +584,7 @@ def get_registered(job_id: str, services: ServicesDep) -> FileResponse:
     description="convergence.json: initial and final MI/NMI (bits, dimensionless), every "
     "iteration with its swap, delta, MI, NMI and elapsed seconds, and why it stopped.",
     responses={200: {"content": {"application/json": {}}, "description": "convergence.json"},
-               **problem_responses(404, 409)},
+               **problem_responses(401, 404, 409)},
 )
-def get_convergence(job_id: str, services: ServicesDep) -> FileResponse:
-    return _result(services, job_id, "convergence")
+def get_convergence(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
+    return _result(services, job_id, "convergence", client)

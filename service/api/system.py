@@ -6,11 +6,12 @@ import functools
 import logging
 from typing import Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends
 from fastapi.responses import PlainTextResponse
 from pydantic import BaseModel
 
 from core.options import RegistrationOptions
+from service.auth import get_client
 from service.deps import ServicesDep
 from service.metrics import CONTENT_TYPE
 from service.problems import Problem, problem_responses
@@ -69,6 +70,8 @@ def _options() -> list[OptionInfo]:
     summary="Options of a job",
     description="Every option a job accepts in its `options` object, with type, default, bounds "
     "and help text (NodeODM's /options is the model).",
+    dependencies=[Depends(get_client)],
+    responses=problem_responses(401),
 )
 def list_options() -> list[OptionInfo]:
     return _options()
@@ -108,7 +111,9 @@ def readyz(services: ServicesDep) -> Readiness:
     summary="Prometheus metrics",
     description="Jobs by status, queue depth, workers and the job duration histogram, in the "
     "Prometheus text format.",
-    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format."}},
+    responses={200: {"content": {"text/plain": {}}, "description": "Prometheus text format."},
+               **problem_responses(401)},
+    dependencies=[Depends(get_client)],
 )
 def metrics(services: ServicesDep) -> PlainTextResponse:
     counts = services.store.count_by_status()

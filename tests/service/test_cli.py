@@ -13,7 +13,7 @@ import pytest
 
 from core.options import RegistrationOptions
 from service.cli import build_parser, options_from_args
-from tests.service.helpers import REPO, Pair, Server, free_port
+from tests.service.helpers import REPO, Pair, Server, free_port, make_pair
 
 RESULT_FILES = {"mesh.json", "registered.png", "convergence.json"}
 
@@ -97,6 +97,12 @@ def test_submit_reports_a_failed_job_and_an_unreachable_server(
                                "moving": pair.moving_points[:2].tolist()}))
     run = pwlreg("submit", str(files["reference"]), str(files["moving"]), "--points", str(two),
                  "--url", server.url, "--out", str(tmp_path / "o"), "-q")
+    assert run.returncode == 1 and "422" in run.stderr and "points" in run.stderr  # refused
+
+    unrelated = tmp_path / "unrelated.png"  # nothing to match: the job fails
+    unrelated.write_bytes(make_pair(seed=99).moving_png)
+    run = pwlreg("submit", str(files["reference"]), str(unrelated), "--url", server.url,
+                 "--out", str(tmp_path / "o"), "-q")
     assert run.returncode == 1 and "failed" in run.stderr and "Traceback" not in run.stderr
 
     run = pwlreg("submit", str(files["reference"]), str(files["not_image"]), "--url", server.url,
