@@ -23,6 +23,7 @@ from service.schemas import Options
 from service.settings import Settings
 from service.storage import LocalStorage
 from service.store import FINISHED, JobStore
+from service.webhooks import Webhooks, load_secret
 from service.worker import resolve_runner
 
 log = logging.getLogger(__name__)
@@ -76,7 +77,10 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         store.create_schema()
         metrics = Metrics()
 
+        webhooks = Webhooks(settings, store, jobs.webhook_body, load_secret(settings))
+
         def on_finished(job_id: str) -> None:
+            webhooks.wake()
             job = store.get(job_id)
             if job is not None and job.status in FINISHED and job.duration is not None:
                 metrics.observe_job(job.status.value, job.duration)
@@ -86,7 +90,10 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         janitor.recover()  # jobs of a previous process that died go back to the queue
         queue.start()
         janitor.start()
-        app.state.services = Services(settings, store, storage, queue, metrics, api_keys)
+        webhooks.start()  # also delivers what a previous process left pending
+        app.state.services = Services(
+            settings, store, storage, queue, metrics, api_keys, webhooks
+        )
         log.info(
             "pwlreg ready: data in %s, %d worker(s), %s", settings.data_dir.resolve(),
             settings.workers,
@@ -97,6 +104,7 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         finally:
             janitor.stop()
             queue.stop()
+            webhooks.stop()
             store.dispose()
 
     app = FastAPI(

@@ -20,6 +20,7 @@ from service.store import JobStore
 
 if TYPE_CHECKING:
     from service.auth import ApiKeys
+    from service.webhooks import Webhooks
 
 
 @dataclass
@@ -33,6 +34,8 @@ class Services:
     metrics: Metrics
     api_keys: ApiKeys
     """The configured API keys (empty: open access, every caller is the anonymous client)."""
+    webhooks: Webhooks | None = None
+    """The webhook delivery loop (told when a job ends)."""
 
 
 def get_services(request: Request) -> Services:

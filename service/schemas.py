@@ -46,7 +46,8 @@ class Link(BaseModel):
     )
 
     href: str = Field(
-        description="Target of the link, a path relative to the server root.",
+        description="Target of the link, a path relative to the server root (an absolute URL "
+        "in a webhook delivery).",
         examples=[f"/v1/jobs/{_JOB_ID_EXAMPLE}"],
     )
     rel: str = Field(description="Relation type.", examples=["self"])
@@ -113,6 +114,63 @@ class ProblemDetails(BaseModel):
     )
     errors: list[FieldError] | None = Field(
         None, description="Every wrong input, when there are several."
+    )
+
+
+class WebhookInfo(BaseModel):
+    """The webhook of a job and the state of its delivery."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "success_uri": "https://example.org/pwlreg-hook",
+                    "failed_uri": "https://example.org/pwlreg-hook",
+                    "event": "successful",
+                    "state": "delivered",
+                    "attempts": 1,
+                    "last_attempt": "2026-01-01T12:00:10Z",
+                    "last_error": None,
+                    "delivery_id": "9a0c6f1e2b3d4c5e6f708192a3b4c5d6",
+                }
+            ]
+        }
+    )
+
+    success_uri: str | None = Field(
+        description="Where a successful job is announced (the callback URL, or successUri).",
+        examples=["https://example.org/pwlreg-hook"],
+    )
+    failed_uri: str | None = Field(
+        description="Where a failed or dismissed job is announced (the callback URL, or "
+        "failedUri).",
+        examples=["https://example.org/pwlreg-hook"],
+    )
+    event: JobStatus | None = Field(
+        None,
+        description="The end the last delivery announces (the job's status then); None while "
+        "the job has not ended.",
+        examples=["successful"],
+    )
+    state: Literal["waiting", "pending", "delivered", "failed", "skipped"] = Field(
+        description="waiting (the job has not ended), pending (being sent or waiting for a "
+        "retry), delivered (a 2xx answer), failed (every attempt failed), skipped (no URL for "
+        "this end).",
+        examples=["delivered"],
+    )
+    attempts: int = Field(description="Attempts of the delivery so far.", examples=[1])
+    last_attempt: datetime | None = Field(
+        None, description="When the last attempt ended (UTC)."
+    )
+    last_error: str | None = Field(
+        None,
+        description="Why the last attempt failed (HTTP status or connection error).",
+        examples=["HTTP 500"],
+    )
+    delivery_id: str | None = Field(
+        None,
+        description="Identifier of the delivery, sent as X-Pwlreg-Delivery with every attempt.",
+        examples=["9a0c6f1e2b3d4c5e6f708192a3b4c5d6"],
     )
 
 
@@ -214,6 +272,11 @@ class StatusInfo(BaseModel):
     )
     error: ProblemDetails | None = Field(
         None, description="Why the job failed, as a problem document (failed jobs only)."
+    )
+    webhook: WebhookInfo | None = Field(
+        None,
+        description="The job's webhook (callback or subscriber) and the state of its delivery; "
+        "None without one.",
     )
 
 

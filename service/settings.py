@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from pydantic import Field, model_validator
+from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -131,6 +131,36 @@ class Settings(BaseSettings):
         ge=0,
         description="Free space the data directory must keep: a submission (its declared "
         "length included) that would leave less is refused with 507 before it is received.",
+    )
+    webhook_secret: SecretStr | None = Field(
+        None,
+        description="Key of the HMAC-SHA256 signature of every webhook delivery "
+        "(X-Pwlreg-Signature). Default: a random key generated at the first start and kept in "
+        "<data_dir>/webhook_secret.",
+    )
+    webhook_allow: str | None = Field(
+        None,
+        description="Webhook targets allowed although they resolve to a loopback, link-local, "
+        "private, multicast, reserved or unspecified address, comma-separated: host names, IP "
+        "addresses or CIDR networks (e.g. '127.0.0.1' for a local receiver). Default: none.",
+    )
+    webhook_max_attempts: int = Field(
+        5,
+        ge=1,
+        le=50,
+        description="Attempts of a webhook delivery before it is given up (recorded as failed).",
+    )
+    webhook_retry_delay: float = Field(
+        10.0,
+        gt=0,
+        description="Delay before the second attempt of a webhook delivery, in seconds; it "
+        "doubles after every further failed attempt.",
+    )
+    webhook_timeout: float = Field(
+        5.0,
+        gt=0,
+        le=60,
+        description="Timeout of one webhook attempt (connect, send, answer), in seconds.",
     )
     runner: str = Field(
         "core.pipeline:register",

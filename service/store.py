@@ -9,6 +9,7 @@ first writer wins and the others see ``rowcount == 0``.
 from __future__ import annotations
 
 import enum
+import uuid
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
@@ -101,11 +102,23 @@ class JobRow(Base):
     updated: Mapped[datetime] = mapped_column(UTCDateTime)
     started: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    # Webhook (all nullable: added to older databases by create_schema). ``callback`` holds the
+    # target URLs and the server's base URL; the other columns are the outbox of the delivery
+    # of the job's last end (``webhook_event``: the status it announces).
+    callback: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    webhook_event: Mapped[str | None] = mapped_column(String(16))
+    webhook_state: Mapped[str | None] = mapped_column(String(16))
+    webhook_attempts: Mapped[int | None] = mapped_column(Integer)
+    webhook_next: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    webhook_last: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    webhook_error: Mapped[str | None] = mapped_column(Text)
+    webhook_delivery: Mapped[str | None] = mapped_column(String(32))
 
     __table_args__ = (
         Index("ix_jobs_status_created", "status", "created"),
         Index("ix_jobs_created", "created"),
         Index("ix_jobs_owner_status", "owner", "status"),
+        Index("ix_jobs_webhook_due", "webhook_state", "webhook_next"),
     )
 
 
@@ -133,6 +146,14 @@ class Job:
     updated: datetime
     started: datetime | None
     finished: datetime | None
+    callback: dict[str, Any] | None = None
+    webhook_event: str | None = None
+    webhook_state: str | None = None
+    webhook_attempts: int | None = None
+    webhook_next: datetime | None = None
+    webhook_last: datetime | None = None
+    webhook_error: str | None = None
+    webhook_delivery: str | None = None
 
     @classmethod
     def from_row(cls, row: JobRow) -> Job:
@@ -250,11 +271,13 @@ class JobStore:
         idempotency_key: str | None = None,
         request_hash: str | None = None,
         owner: str | None = None,
+        callback: dict[str, Any] | None = None,
     ) -> tuple[Job, bool]:
         """Insert an accepted job, or return the job already created with the same key.
 
         ``owner`` is the API client submitting it (None without API keys); the caller scopes
         ``idempotency_key`` to the owner (see :func:`service.api.jobs.scoped_key`).
+        ``callback`` is the job's webhook (see :mod:`service.webhooks`), if any.
 
         Returns
         -------
@@ -283,6 +306,7 @@ class JobStore:
             idempotency_key=idempotency_key,
             request_hash=request_hash,
             owner=owner,
+            callback=callback,
             attempts=0,
             max_attempts=max_attempts,
             created=now,
@@ -604,3 +628,102 @@ class JobStore:
         with self._sessions() as session:
             return set(session.scalars(select(JobRow.id).where(JobRow.id.in_(list(job_ids)))))
 
+    # --- webhook outbox (see service.webhooks) ---------------------------------------------------
+
+    def arm_webhooks(self, target: Any, limit: int = 100) -> list[str]:
+        """Open a delivery for every finished job with a callback whose current end has none
+        yet. ``target(job)`` gives the URL of that end (None: nothing to send, the delivery is
+        recorded as ``skipped``). Returns the ids of the jobs armed."""
+        finished = [s.value for s in FINISHED]
+        with self._sessions() as session:
+            rows = session.scalars(
+                select(JobRow)
+                .where(
+                    JobRow.callback.is_not(None),
+                    JobRow.status.in_(finished),
+                    (JobRow.webhook_event.is_(None)) | (JobRow.webhook_event != JobRow.status),
+                )
+                .limit(limit)
+            ).all()
+            jobs = [Job.from_row(r) for r in rows]
+        armed: list[str] = []
+        now = utcnow()
+        for job in jobs:
+            url = target(job)
+            n = self._update(
+                update(JobRow)
+                .where(
+                    JobRow.id == job.id,
+                    JobRow.status == job.status.value,
+                    (JobRow.webhook_event.is_(None)) | (JobRow.webhook_event != JobRow.status),
+                )
+                .values(
+                    webhook_event=job.status.value,
+                    webhook_state="pending" if url else "skipped",
+                    webhook_attempts=0,
+                    webhook_next=now if url else None,
+                    webhook_last=None,
+                    webhook_error=None,
+                    webhook_delivery=uuid.uuid4().hex,
+                )
+            )
+            if n:
+                armed.append(job.id)
+        return armed
+
+    def due_webhooks(self, now: datetime, limit: int = 20) -> list[Job]:
+        """Jobs whose pending delivery is due at ``now``, the most overdue first."""
+        with self._sessions() as session:
+            rows = session.scalars(
+                select(JobRow)
+                .where(JobRow.webhook_state == "pending", JobRow.webhook_next <= now)
+                .order_by(JobRow.webhook_next)
+                .limit(limit)
+            ).all()
+            return [Job.from_row(r) for r in rows]
+
+    def next_webhook_time(self) -> datetime | None:
+        """When the next pending delivery is due, or None."""
+        with self._sessions() as session:
+            return session.execute(
+                select(func.min(JobRow.webhook_next)).where(JobRow.webhook_state == "pending")
+            ).scalar_one()
+
+    def claim_webhook(self, job: Job, hold_seconds: float) -> bool:
+        """Take the due delivery of ``job`` for one attempt (its next time moves
+        ``hold_seconds`` ahead, so that nobody else takes it meanwhile); False if it was taken,
+        finished or replaced by a newer end."""
+        now = utcnow()
+        return self._update(
+            update(JobRow)
+            .where(
+                JobRow.id == job.id,
+                JobRow.webhook_state == "pending",
+                JobRow.webhook_delivery == job.webhook_delivery,
+                JobRow.webhook_next <= now,
+            )
+            .values(webhook_next=now + timedelta(seconds=hold_seconds))
+        ) == 1
+
+    def record_webhook(
+        self,
+        job_id: str,
+        delivery: str,
+        attempts: int,
+        state: str,
+        error: str | None,
+        next_time: datetime | None,
+    ) -> bool:
+        """Record the outcome of an attempt of delivery ``delivery``; False if that delivery
+        was replaced (the job ended again) or the job is gone."""
+        return self._update(
+            update(JobRow)
+            .where(JobRow.id == job_id, JobRow.webhook_delivery == delivery)
+            .values(
+                webhook_attempts=attempts,
+                webhook_state=state,
+                webhook_error=error,
+                webhook_next=next_time,
+                webhook_last=utcnow(),
+            )
+        ) == 1

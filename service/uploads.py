@@ -23,6 +23,9 @@ from service.problems import Problem, invalid_input, malformed_request, upload_t
 OVERHEAD_BYTES = 64 * 1024
 """Allowance for multipart boundaries and part headers in the whole-request size check."""
 
+SMALL_PART_BYTES = 8 * 1024
+"""Limit of each small form field (e.g. a webhook URL), whatever the upload limit."""
+
 DRAIN_LIMIT_BYTES = 16 * 1024 * 1024
 """After a refused part, at most this many further bytes are read (and discarded) so that the
 client sees the 413 answer instead of a reset connection; a longer body is cut off."""
@@ -56,10 +59,17 @@ class ReceivedForm:
 class _Receiver:
     """Callbacks of :class:`python_multipart.MultipartParser` writing parts to files."""
 
-    def __init__(self, staging: Path, allowed: Collection[str], max_part_bytes: int) -> None:
+    def __init__(
+        self,
+        staging: Path,
+        allowed: Collection[str],
+        max_part_bytes: int,
+        small_parts: Collection[str] = (),
+    ) -> None:
         self.staging = staging
         self.allowed = allowed
         self.max_part_bytes = max_part_bytes
+        self.small_parts = small_parts
         self.form = ReceivedForm()
         self.problem: Problem | None = None
         self._header_name = b""
@@ -145,10 +155,15 @@ class _Receiver:
             return
         chunk = data[start:end]
         self._part.size += len(chunk)
-        if self._part.size > self.max_part_bytes:
+        limit = (
+            min(SMALL_PART_BYTES, self.max_part_bytes)
+            if self._part.name in self.small_parts
+            else self.max_part_bytes
+        )
+        if self._part.size > limit:
             self.fail(
                 upload_too_large(
-                    f"{self._part.name} is larger than the limit of {self.max_part_bytes} bytes",
+                    f"{self._part.name} is larger than the limit of {limit} bytes",
                     self._part.name,
                 )
             )
@@ -182,6 +197,7 @@ async def receive_form(
     staging: Path,
     allowed: Collection[str],
     max_part_bytes: int,
+    small_parts: Collection[str] = (),
 ) -> ReceivedForm:
     """Receive a ``multipart/form-data`` body into ``staging``, one file per part.
 
@@ -197,6 +213,8 @@ async def receive_form(
         Accepted part names; any other name is refused (422).
     max_part_bytes : int
         Largest accepted part, in bytes (413 above it).
+    small_parts : collection of str
+        Those of ``allowed`` that are small fields, limited to :data:`SMALL_PART_BYTES`.
 
     Raises
     ------
@@ -217,7 +235,12 @@ async def receive_form(
     boundary = params.get(b"boundary")
     if not boundary:
         raise malformed_request("multipart/form-data without a boundary parameter")
-    limit_total = len(allowed) * max_part_bytes + OVERHEAD_BYTES
+    small = [name for name in allowed if name in small_parts]
+    limit_total = (
+        (len(allowed) - len(small)) * max_part_bytes
+        + len(small) * min(SMALL_PART_BYTES, max_part_bytes)
+        + OVERHEAD_BYTES
+    )
     if content_length is not None:
         try:
             declared = int(content_length)
@@ -228,7 +251,7 @@ async def receive_form(
                 f"the request body ({declared} bytes) is larger than the limit of "
                 f"{limit_total} bytes ({max_part_bytes} bytes per part)"
             )
-    receiver = _Receiver(staging, allowed, max_part_bytes)
+    receiver = _Receiver(staging, allowed, max_part_bytes, small_parts)
     try:
         parser = MultipartParser(boundary, receiver.callbacks())  # type: ignore[arg-type]
     except FormParserError as exc:

@@ -42,10 +42,13 @@ from service.schemas import JobList, Link, StatusInfo
 from service.storage import IMAGES, RESULTS
 from service.store import IdempotencyConflict, Job, JobStatus
 from service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
+from service.webhooks import AllowList, parse_callback, webhook_info
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 FORM_PARTS = ("reference", "moving", "points", "options")
+WEBHOOK_PARTS = ("callback", "subscriber")
+"""Small form fields (at most :data:`service.uploads.SMALL_PART_BYTES` each)."""
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
 RESULT_ROUTES = {"mesh": "mesh", "registered": "registered.png", "convergence": "convergence"}
 _KEY_PATTERN = re.compile(r"^[\x21-\x7e]{1,255}$")
@@ -64,7 +67,20 @@ def job_href(request: Request, job_id: str) -> str:
 
 def status_info(job: Job, request: Request) -> StatusInfo:
     """The status document of ``job``, with links relative to the server root."""
-    href = job_href(request, job.id)
+    return build_status(job, _root(request))
+
+
+def webhook_body(job: Job) -> bytes:
+    """The status document of ``job`` as a webhook sends it: the JSON of ``GET
+    /v1/jobs/{id}``, with links absolute (the base URL the job was submitted to)."""
+    base = (job.callback or {}).get("base_url") or ""
+    return build_status(job, base).model_dump_json().encode()
+
+
+def build_status(job: Job, root: str) -> StatusInfo:
+    """The status document of ``job``, with links under ``root`` (a path prefix or a base
+    URL)."""
+    href = f"{root}/v1/jobs/{job.id}"
     links = [Link(href=href, rel="self", type="application/json", title="This job")]
     if job.status == JobStatus.successful:
         for key, route in RESULT_ROUTES.items():
@@ -89,6 +105,7 @@ def status_info(job: Job, request: Request) -> StatusInfo:
         quality=job.quality,
         links=links,
         error=job.error,  # type: ignore[arg-type]
+        webhook=webhook_info(job),  # type: ignore[arg-type]
     )
 
 
@@ -285,11 +302,30 @@ def _precheck(
     check_disk(services, content_length)
 
 
+def _read_callback(
+    form: ReceivedForm, allow: AllowList, base_url: str
+) -> dict[str, Any] | None:
+    """The webhook of a submission (form fields ``callback`` or ``subscriber``), checked."""
+    texts = {
+        name: form.parts[name].path.read_bytes().decode("utf-8", "replace")
+        for name in WEBHOOK_PARTS
+        if name in form.parts
+    }
+    urls = parse_callback(texts.get("callback"), texts.get("subscriber"), allow)
+    return None if urls is None else {**urls, "base_url": base_url}
+
+
 def _accept(
-    services: Services, form: ReceivedForm, staging: Path, key: str | None, client: str | None
+    services: Services,
+    form: ReceivedForm,
+    staging: Path,
+    key: str | None,
+    client: str | None,
+    base_url: str = "",
 ) -> tuple[Job, bool]:
     """Validate and store a submission; returns the job and whether it is new. ``key`` is the
-    scoped idempotency key (:func:`scoped_key`)."""
+    scoped idempotency key (:func:`scoped_key`); ``base_url`` makes the links of webhook
+    deliveries absolute."""
     store, storage, settings = services.store, services.storage, services.settings
     fingerprint = form.fingerprint()
     if key is not None:
@@ -303,6 +339,7 @@ def _accept(
             return existing, False
     check_queue(services, client)  # again: other jobs may have come while this one uploaded
     options, has_points = validate_submission(form, settings.max_pixels)
+    callback = _read_callback(form, AllowList.parse(settings.webhook_allow), base_url)
     job_id = uuid.uuid4().hex
     # Files first, then the row: a crash in between leaves files without a row (swept later),
     # never a row without its files.
@@ -316,6 +353,7 @@ def _accept(
             idempotency_key=key,
             request_hash=fingerprint,
             owner=client,
+            callback=callback,
         )
     except IdempotencyConflict as exc:
         storage.remove(job_id)
@@ -359,6 +397,24 @@ _FORM_SCHEMA = {
             "description": "Optional options as a JSON object, as a form field or a file part "
             "(see GET /v1/options). Unknown names are refused.",
         },
+        "callback": {
+            "type": "string",
+            "format": "uri",
+            "maxLength": 2048,
+            "description": "Optional webhook: an http(s) URL to which the job's status document "
+            "is POSTed, signed, when the job ends (successful, failed or dismissed). A URL whose "
+            "host resolves to a loopback, link-local, private, multicast or unspecified address "
+            "is refused (422) unless the service's allow-list permits it.",
+            "example": "https://example.org/pwlreg-hook",
+        },
+        "subscriber": {
+            "type": "string",
+            "description": "Optional webhook, OGC API - Processes style (instead of callback): "
+            'a JSON object {"successUri": ..., "failedUri": ...}; a successful job is announced '
+            "to successUri, a failed or dismissed one to failedUri (inProgressUri is ignored).",
+            "example": '{"successUri": "https://example.org/done", '
+            '"failedUri": "https://example.org/failed"}',
+        },
     },
 }
 
@@ -393,6 +449,7 @@ _FORM_SCHEMA = {
                     "schema": _FORM_SCHEMA,
                     "encoding": {
                         "options": {"contentType": "application/json"},
+                        "subscriber": {"contentType": "application/json"},
                     },
                 }
             },
@@ -424,10 +481,14 @@ async def submit_job(
             content_length,
             request.stream(),
             staging,
-            FORM_PARTS,
+            FORM_PARTS + WEBHOOK_PARTS,
             services.settings.max_upload_bytes,
+            small_parts=WEBHOOK_PARTS,
         )
-        job, created = await run_in_threadpool(_accept, services, form, staging, key, client)
+        base_url = str(request.base_url).rstrip("/")
+        job, created = await run_in_threadpool(
+            _accept, services, form, staging, key, client, base_url
+        )
     except OSError as exc:
         if exc.errno != errno.ENOSPC:
             raise
@@ -523,6 +584,8 @@ def dismiss_job(job_id: str, services: ServicesDep, client: ClientDep) -> Respon
     _get_job(services, job_id, client)
     services.store.dismiss(job_id)
     services.storage.remove(job_id)
+    if services.webhooks is not None:
+        services.webhooks.wake()
     return Response(status_code=204)
 
 

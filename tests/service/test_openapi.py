@@ -39,7 +39,8 @@ def test_errors_are_documented_as_problem_documents() -> None:
     submit = doc["paths"]["/v1/jobs"]["post"]
     form = submit["requestBody"]["content"]["multipart/form-data"]["schema"]
     assert form["required"] == ["reference", "moving"]
-    assert set(form["properties"]) == {"reference", "moving", "points", "options"}
+    assert set(form["properties"]) == {"reference", "moving", "points", "options", "callback",
+                                       "subscriber"}
     assert "Location" in submit["responses"]["201"]["headers"]
 
 
