@@ -232,6 +232,10 @@ def load(args: argparse.Namespace) -> int:
         print(f"server + workers memory MB: first {rss[0]:.0f}, max {max(rss):.0f}, "
               f"median of the last third {np.median(rss[-third:]):.0f}; open files: first "
               f"{fds[0]}, max {max(fds)}, last {fds[-1]}")
+        marks = [samples[min(len(samples) - 1, int(q * (len(samples) - 1)))]
+                 for q in (0.0, 0.25, 0.5, 0.75, 1.0)]
+        print("  at 0/25/50/75/100 % of the run (s, MB, files): " + ", ".join(
+            f"({t:.0f}, {m:.0f}, {f})" for t, m, f in marks))
     ok = set(answers) <= {201, 429} and statuses.get("successful", 0) == len(accepted)
     print("PASS" if ok else "FAIL")
     return 0 if ok else 1
