@@ -187,8 +187,12 @@ class QuadScorer:
 
     def deltas(self, mesh: Mesh, edges: list[Edge]) -> np.ndarray:
         """Gain of each swap: consistency after minus before, same order as ``edges``."""
+        return self.deltas_and_pixels(mesh, edges)[0]
+
+    def deltas_and_pixels(self, mesh: Mesh, edges: list[Edge]) -> tuple[np.ndarray, np.ndarray]:
+        """Gain of each swap and the number of reference pixels of its quad."""
         if not edges:
-            return np.zeros(0)
+            return np.zeros(0), np.zeros(0)
         quads = [quad_triples(mesh.quad(e), mesh) for e in edges]
         self.cache.ensure(t for q in quads for t in q)
         rows = self.cache.rows(t for q in quads for t in q).reshape(-1, 4)
@@ -201,7 +205,21 @@ class QuadScorer:
         after = self.cost.measure(
             h[:, 2] + h[:, 3], None if m is None else m[:, 2] + m[:, 3], bins
         )
-        return after - before
+        return after - before, (h[:, 0] + h[:, 1]).sum(axis=1).astype(np.float64)
+
+
+def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -> np.ndarray:
+    """Smallest accepted gain of swaps whose quads have ``pixels`` reference pixels.
+
+    The noise of a consistency estimate falls as one over the square root of its sample size:
+    ``epsilon`` for a quad of ``epsilon_pixels`` pixels, ``epsilon * sqrt(epsilon_pixels / n)``
+    for ``n`` pixels, within ``epsilon / 5`` and ``5 epsilon``. ``epsilon_pixels`` 0 keeps the
+    paper's one threshold for every quad.
+    """
+    if epsilon_pixels <= 0:
+        return np.full(len(pixels), float(epsilon))
+    scaled = epsilon * np.sqrt(epsilon_pixels / np.maximum(pixels, 1.0))
+    return np.clip(scaled, epsilon / 5, 5 * epsilon)
 
 
 def greedy_search(
@@ -211,6 +229,7 @@ def greedy_search(
     epsilon: float = 0.01,
     max_iterations: int = 100_000,
     progress: ProgressFn | None = None,
+    epsilon_pixels: float = 0.0,
 ) -> SearchResult:
     """Swap edges of ``mesh`` in place, best gain first, while the gain exceeds ``epsilon``.
 
@@ -239,6 +258,10 @@ def greedy_search(
         Upper bound on accepted swaps.
     progress : callable, optional
         Called with a fraction in [0, 1]; it may raise to abort the search.
+    epsilon_pixels : float
+        With a positive value the threshold follows each quad's size
+        (:func:`gain_thresholds`) and swaps go in order of their gain over it; 0 is the paper's
+        one ``epsilon`` for every quad, best gain first.
     """
     t0 = time.perf_counter()
     current = [_triple(mesh.triangle(s)) for s in mesh.slots()]
@@ -250,7 +273,13 @@ def greedy_search(
     )
     scorer = QuadScorer(cache, cost)
     cache.ensure(current)
-    deltas = scorer.deltas(mesh, candidates)
+
+    def margins(edges: list[Edge]) -> tuple[list[float], list[float]]:
+        gains, pixels = scorer.deltas_and_pixels(mesh, edges)
+        over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
+        return gains.tolist(), over.tolist()
+
+    gains, over = margins(candidates)
     global_hist = cache.hist(current)
     mi, nmi = (float(v) for v in mutual_information(global_hist, images.bins))
     result = SearchResult(initial_mi=mi, initial_nmi=nmi, evaluations=len(candidates))
@@ -263,7 +292,9 @@ def greedy_search(
         q = mesh.quad(e)
         return edge_key(q.k, q.l) not in retired
 
-    best: dict[Edge, float] = dict(zip(candidates, deltas.tolist(), strict=True))
+    # Keyed by the gain over the edge's threshold; the gain itself is what a step records.
+    best: dict[Edge, float] = dict(zip(candidates, over, strict=True))
+    gain: dict[Edge, float] = dict(zip(candidates, gains, strict=True))
     heap = [(-d, e) for e, d in best.items()]
     heapq.heapify(heap)
     stopped = "no swap raises the consistency by more than epsilon"
@@ -272,12 +303,12 @@ def greedy_search(
     while True:
         while heap and best.get(heap[0][1]) != -heap[0][0]:
             heapq.heappop(heap)
-        if not heap or -heap[0][0] <= epsilon:
+        if not heap or -heap[0][0] <= 0.0:
             break
         if len(result.steps) >= max_iterations:
             stopped = "max_iterations reached"
             break
-        neg_delta, e = heapq.heappop(heap)
+        _, e = heapq.heappop(heap)
         del best[e]
         if not eligible(e):
             # A swap elsewhere created, or retired, the edge this one would add.
@@ -293,7 +324,7 @@ def greedy_search(
                 iteration=len(result.steps) + 1,
                 removed=e,
                 added=added,
-                delta=-neg_delta,
+                delta=gain[e],
                 mi=mi,
                 nmi=nmi,
                 elapsed_s=time.perf_counter() - t0,
@@ -302,12 +333,13 @@ def greedy_search(
         ring = [b for b in q.boundary if eligible(b)]
         for b in q.boundary:
             best.pop(b, None)
-        for b, d in zip(ring, scorer.deltas(mesh, ring).tolist(), strict=True):
+        for b, g, d in zip(ring, *margins(ring), strict=True):
             best[b] = d
+            gain[b] = g
             heapq.heappush(heap, (-d, b))
         result.evaluations += len(ring)
         if progress is not None and len(result.steps) % 16 == 0:
-            remaining = sum(d > epsilon for d in best.values())
+            remaining = sum(d > 0.0 for d in best.values())
             progress(len(result.steps) / (len(result.steps) + remaining))
     result.final_mi, result.final_nmi = mi, nmi
     result.stopped_because = stopped

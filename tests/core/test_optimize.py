@@ -174,3 +174,14 @@ def test_greedy_pyramid_runs_sharp_last_and_reports_on_the_images():
     assert [s.iteration for s in pyr.search.steps] == list(range(1, len(pyr.search.steps) + 1))
     assert pyr.search.steps  # the crease-crossing diagonals get swapped
     assert pyr.search.final_mi > pyr.search.initial_mi
+
+
+def test_gain_thresholds_follow_the_quad_size_within_bounds():
+    from core.optimize import gain_thresholds
+
+    n = np.array([62.5, 250.0, 1000.0, 1e6, 1.0])
+    t = gain_thresholds(n, 0.01, 250.0)
+    assert t[1] == pytest.approx(0.01)
+    assert t[0] == pytest.approx(0.02) and t[2] == pytest.approx(0.005)
+    assert t[3] == pytest.approx(0.002) and t[4] == pytest.approx(0.05)  # the bounds
+    assert np.all(gain_thresholds(n, 0.01, 0.0) == 0.01)  # the paper's fixed epsilon
