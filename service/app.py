@@ -15,8 +15,9 @@ from service import __version__
 from service.api import jobs, system
 from service.auth import load_api_keys
 from service.deps import Services
+from service.logs import job_extra
 from service.maintenance import Janitor
-from service.metrics import Metrics
+from service.metrics import CountRefusals, Metrics
 from service.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
 from service.queue import JobQueue, LocalProcessQueue
 from service.schemas import Options
@@ -83,9 +84,14 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
             webhooks.wake()
             job = store.get(job_id)
             if job is not None and job.status in FINISHED and job.duration is not None:
-                metrics.observe_job(job.status.value, job.duration)
+                metrics.observe_job(job.status.value, job.duration, job.timings)
+                log.info(
+                    "job %s: %s after %.2f s", job_id, job.status.value, job.duration,
+                    extra=job_extra(job_id, job.owner),
+                )
 
         queue = make_queue(settings, store, on_finished)
+        metrics.track_store(store.count_by_status, queue.depth, settings.workers)
         janitor = Janitor(settings, store, storage, queue)
         janitor.recover()  # jobs of a previous process that died go back to the queue
         queue.start()
@@ -115,6 +121,7 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         lifespan=lifespan,
     )
     install_problem_handlers(app)
+    app.add_middleware(CountRefusals)
     app.include_router(jobs.router)
     app.include_router(system.router)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]

@@ -16,7 +16,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import Depends
+from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.deps import ServicesDep
@@ -129,7 +129,7 @@ def read_keys_file(path: Path) -> list[tuple[str, str]]:
 def load_api_keys(settings: Settings) -> ApiKeys:
     """Every key of the settings (``api_keys`` then ``api_keys_file``); ValueError, naming the
     entry but not the key, if one is malformed or a name or key is repeated."""
-    keys = parse_keys(settings.api_keys or "")
+    keys = parse_keys(settings.api_keys.get_secret_value() if settings.api_keys else "")
     if settings.api_keys_file is not None:
         keys += read_keys_file(settings.api_keys_file)
     return ApiKeys(keys)
@@ -153,10 +153,14 @@ def unauthorized(detail: str) -> Problem:
 
 
 def get_client(
+    request: Request,
     services: ServicesDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
 ) -> str | None:
     """The name of the calling client; None when the server has no keys (open access).
+
+    The name is also kept in ``request.state.client`` (read by the middleware that counts
+    refused submissions).
 
     Raises
     ------
@@ -172,6 +176,7 @@ def get_client(
     client = keys.identify(credentials.credentials)
     if client is None:
         raise unauthorized("unknown API key")
+    request.state.client = client  # for the metrics of the answer (service.metrics)
     return client
 
 

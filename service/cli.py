@@ -277,11 +277,10 @@ def _follow(
 
 def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service with uvicorn (API, worker processes, SQLite, local files)."""
-    import logging
-
     import uvicorn
 
     from service.app import create_app
+    from service.logs import configure_logging
     from service.settings import Settings
 
     overrides: dict[str, Any] = {}
@@ -293,14 +292,15 @@ def cmd_serve(args: argparse.Namespace) -> int:
         settings = Settings(**overrides)
     except ValidationError as exc:
         raise CommandError(_validation_message(exc, prefix="settings")) from None
-    logging.basicConfig(
-        level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    configure_logging(args.log_level.upper(), settings.log_format)
     uvicorn.run(
         create_app(settings),
         host=args.host,
         port=args.port,
         log_level=args.log_level,
+        # JSON: uvicorn's records (errors, access log) go to the root handler too, one JSON
+        # object per line; text keeps uvicorn's own format.
+        **({"log_config": None} if settings.log_format == "json" else {}),
         timeout_graceful_shutdown=15,
     )
     return 0

@@ -10,6 +10,7 @@ import threading
 import time
 from datetime import timedelta
 
+from service.logs import job_extra
 from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import LocalStorage
@@ -48,10 +49,12 @@ class Janitor:
         """Requeue the running jobs whose lease expired (fail those out of attempts)."""
         requeued, failed = self.store.recover_expired()
         for job_id in requeued:
-            log.warning("job %s: lease expired (worker died); requeued", job_id)
+            log.warning("job %s: lease expired (worker died); requeued", job_id,
+                        extra=job_extra(job_id))
             self.queue.enqueue(job_id)
         for job_id in failed:
-            log.error("job %s: lease expired and no attempts left; failed", job_id)
+            log.error("job %s: lease expired and no attempts left; failed", job_id,
+                      extra=job_extra(job_id))
         return requeued, failed
 
     def apply_retention(self) -> int:

@@ -1,90 +1,166 @@
-"""Prometheus metrics in the text exposition format (version 0.0.4), without a client library.
+"""Prometheus metrics of one application instance, with ``prometheus_client``.
 
-Gauges (jobs by status, queue depth, workers) are read from the store at scrape time; the job
-duration histogram is observed in this process when an attempt ends, and restarts at zero with
-the process, as Prometheus counters do.
+Each application owns a :class:`~prometheus_client.CollectorRegistry` (not the library's global
+one), so that several applications in one process do not share or clash over their metrics.
+
+* Gauges read from the store at scrape time (:class:`StoreCollector`): jobs by status, queue
+  depth, workers.
+* Counters observed in the API process: jobs submitted and submissions refused, per client.
+* Histograms observed in the API process when it learns that an attempt ended, from the job row:
+  the job duration by final status and, for a successful job, the seconds of each stage (the
+  registration's timings, which the worker stores in the row). Counters and histograms restart
+  at zero with the process, as Prometheus expects.
 """
 
 from __future__ import annotations
 
-import bisect
-import math
-import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Histogram
+from prometheus_client.exposition import generate_latest
+from prometheus_client.metrics_core import GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.store import JobStatus
 
 DURATION_BUCKETS: tuple[float, ...] = (0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600, 1800)
 """Upper bounds of the job duration histogram, in seconds (``+Inf`` is implicit)."""
 
-CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+STAGE_BUCKETS: tuple[float, ...] = (
+    0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300, 600, 1800
+)
+"""Upper bounds of the stage duration histogram, in seconds."""
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+"""Media type of the exposition text."""
+
+NO_CLIENT = ""
+"""The ``client`` label when no client is known: open access, or a request refused before its
+API key was recognised (401)."""
 
 
-class Histogram:
-    """A cumulative histogram with labels, for the Prometheus text format."""
+class StoreCollector(Collector):
+    """Gauges read when Prometheus scrapes: jobs by status, queue depth, workers.
 
-    def __init__(self, buckets: Sequence[float]) -> None:
-        self.buckets = tuple(sorted(buckets))
-        self._counts: dict[str, list[int]] = {}
-        self._sums: dict[str, float] = {}
-        self._lock = threading.Lock()
+    Parameters
+    ----------
+    counts : callable
+        Number of jobs per status (:meth:`service.store.JobStore.count_by_status`).
+    depth : callable
+        Jobs waiting for a worker (:meth:`service.queue.JobQueue.depth`).
+    workers : int
+        Worker processes of the service.
+    """
 
-    def observe(self, label: str, value: float) -> None:
-        """Add one observation ``value`` under ``label``."""
-        with self._lock:
-            counts = self._counts.setdefault(label, [0] * (len(self.buckets) + 1))
-            counts[bisect.bisect_left(self.buckets, value)] += 1
-            self._sums[label] = self._sums.get(label, 0.0) + value
+    def __init__(
+        self, counts: Callable[[], Mapping[JobStatus, int]], depth: Callable[[], int], workers: int
+    ) -> None:
+        self.counts = counts
+        self.depth = depth
+        self.workers = workers
 
-    def render(self, name: str, label_name: str) -> list[str]:
-        with self._lock:
-            items = sorted((k, list(v), self._sums[k]) for k, v in self._counts.items())
-        lines = []
-        for label, counts, total in items:
-            cumulative = 0
-            for bound, n in zip((*self.buckets, math.inf), counts, strict=True):
-                cumulative += n
-                le = "+Inf" if math.isinf(bound) else _number(bound)
-                lines.append(f'{name}_bucket{{{label_name}="{label}",le="{le}"}} {cumulative}')
-            lines.append(f'{name}_sum{{{label_name}="{label}"}} {_number(total)}')
-            lines.append(f'{name}_count{{{label_name}="{label}"}} {cumulative}')
-        return lines
+    def _families(self, read: bool) -> Iterable[Metric]:
+        jobs = GaugeMetricFamily("pwlreg_jobs", "Jobs in the store, by status.", labels=["status"])
+        if read:
+            counts = self.counts()
+            for status in JobStatus:
+                jobs.add_metric([status.value], counts.get(status, 0))
+        yield jobs
+        yield GaugeMetricFamily(
+            "pwlreg_queue_depth", "Accepted jobs waiting for a worker.",
+            value=self.depth() if read else None,
+        )
+        yield GaugeMetricFamily(
+            "pwlreg_workers", "Worker processes of this service.",
+            value=self.workers if read else None,
+        )
 
+    def describe(self) -> Iterable[Metric]:
+        return list(self._families(read=False))
 
-def _number(x: float) -> str:
-    return repr(float(x))
+    def collect(self) -> Iterable[Metric]:
+        return list(self._families(read=True))
 
 
 class Metrics:
-    """The metrics of one service process."""
+    """The metrics of one application instance, in its own registry."""
 
     def __init__(self) -> None:
-        self.job_duration = Histogram(DURATION_BUCKETS)
+        self.registry = CollectorRegistry()
+        self.jobs_submitted = Counter(
+            "pwlreg_jobs_submitted", "Jobs created by POST /v1/jobs (not idempotent replays), "
+            "by client.", ["client"], registry=self.registry,
+        )
+        self.submissions_refused = Counter(
+            "pwlreg_submissions_refused", "POST /v1/jobs answered with an error, by client and "
+            "HTTP status code.", ["client", "code"], registry=self.registry,
+        )
+        self.job_duration = Histogram(
+            "pwlreg_job_duration_seconds", "Duration of finished job attempts (start to end), "
+            "by final status.", ["status"], buckets=DURATION_BUCKETS, registry=self.registry,
+        )
+        self.stage_duration = Histogram(
+            "pwlreg_stage_duration_seconds", "Seconds each stage of a successful job took, by "
+            "stage.", ["stage"], buckets=STAGE_BUCKETS, registry=self.registry,
+        )
 
-    def observe_job(self, status: str, seconds: float) -> None:
-        """Record the duration (start of the attempt to its end, seconds) of a finished job."""
-        self.job_duration.observe(status, max(0.0, seconds))
+    def track_store(
+        self, counts: Callable[[], Mapping[JobStatus, int]], depth: Callable[[], int],
+        workers: int,
+    ) -> None:
+        """Add the gauges read at scrape time (:class:`StoreCollector`)."""
+        self.registry.register(StoreCollector(counts, depth, workers))
 
-    def render(
-        self, jobs_by_status: Mapping[JobStatus, int], queue_depth: int, workers: int
-    ) -> str:
-        """The exposition text."""
-        lines = [
-            "# HELP pwlreg_jobs Jobs in the store, by status.",
-            "# TYPE pwlreg_jobs gauge",
-        ]
-        for status in JobStatus:
-            lines.append(f'pwlreg_jobs{{status="{status.value}"}} {jobs_by_status.get(status, 0)}')
-        lines += [
-            "# HELP pwlreg_queue_depth Accepted jobs waiting for a worker.",
-            "# TYPE pwlreg_queue_depth gauge",
-            f"pwlreg_queue_depth {queue_depth}",
-            "# HELP pwlreg_workers Worker processes of this service.",
-            "# TYPE pwlreg_workers gauge",
-            f"pwlreg_workers {workers}",
-            "# HELP pwlreg_job_duration_seconds Duration of finished job attempts (start to end), "
-            "by final status.",
-            "# TYPE pwlreg_job_duration_seconds histogram",
-        ]
-        lines += self.job_duration.render("pwlreg_job_duration_seconds", "status")
-        return "\n".join(lines) + "\n"
+    def job_submitted(self, client: str | None) -> None:
+        self.jobs_submitted.labels(client=client or NO_CLIENT).inc()
+
+    def submission_refused(self, client: str | None, code: int) -> None:
+        self.submissions_refused.labels(client=client or NO_CLIENT, code=str(code)).inc()
+
+    def observe_job(
+        self, status: str, seconds: float, stages: Mapping[str, float] | None = None
+    ) -> None:
+        """Record a finished job: its duration (start of the attempt to its end, seconds) and
+        the seconds of its stages, if known."""
+        self.job_duration.labels(status=status).observe(max(0.0, seconds))
+        for stage, stage_seconds in (stages or {}).items():
+            self.stage_duration.labels(stage=stage).observe(max(0.0, float(stage_seconds)))
+
+    def render(self) -> bytes:
+        """The exposition text (:data:`CONTENT_TYPE`)."""
+        return generate_latest(self.registry)
+
+
+class CountRefusals:
+    """ASGI middleware counting the answers of ``POST /v1/jobs`` that refuse the submission
+    (status 400 and above), by client (``request.state.client``, set by
+    :func:`service.auth.get_client`) and status code, in the metrics of the application."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if (
+            scope["type"] != "http"
+            or scope["method"] != "POST"
+            or not scope["path"].rstrip("/").endswith("/v1/jobs")
+        ):
+            await self.app(scope, receive, send)
+            return
+        state: dict[str, Any] = scope.setdefault("state", {})
+        status = 0  # no answer (e.g. the client went away): not counted
+
+        async def send_and_note(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_and_note)
+        finally:
+            services = getattr(scope["app"].state, "services", None)
+            if status >= 400 and services is not None:
+                services.metrics.submission_refused(state.get("client"), status)

@@ -23,6 +23,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from functools import partial
 
+from service.logs import job_extra
 from service.settings import Settings
 from service.store import JobStatus, JobStore
 from service.worker import init_process, ping, run_in_process
@@ -204,15 +205,17 @@ class LocalProcessQueue(JobQueue):
             if isinstance(exc, BrokenProcessPool):
                 # A worker process died (killed, out of memory). Its job's lease will expire
                 # and the maintenance pass requeues it; the pool is replaced.
-                log.error("worker pool broken while running job %s: %s", job_id, exc)
+                log.error("worker pool broken while running job %s: %s", job_id, exc,
+                          extra=job_extra(job_id))
                 self._broken = True
             elif exc is not None:
-                log.error("job %s: worker raised %r", job_id, exc)
+                log.error("job %s: worker raised %r", job_id, exc, extra=job_extra(job_id))
         if self.on_finished is not None:
             try:
                 self.on_finished(job_id)
             except Exception:  # noqa: BLE001
-                log.exception("on_finished callback failed for job %s", job_id)
+                log.exception("on_finished callback failed for job %s", job_id,
+                              extra=job_extra(job_id))
         self._wake.set()
 
     def _replace_executor(self) -> None:

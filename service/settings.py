@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -102,7 +103,7 @@ class Settings(BaseSettings):
         gt=0,
         description="Interval of the maintenance pass (expired leases, retention), in seconds.",
     )
-    api_keys: str | None = Field(
+    api_keys: SecretStr | None = Field(
         None,
         description="API keys, comma-separated, each 'name:key' or a bare 'key' (named client1, "
         "client2, ... in order). With any key configured, every endpoint but /healthz, /readyz, "
@@ -161,6 +162,12 @@ class Settings(BaseSettings):
         gt=0,
         le=60,
         description="Timeout of one webhook attempt (connect, send, answer), in seconds.",
+    )
+    log_format: Literal["text", "json"] = Field(
+        "text",
+        description="Format of the log records of the API and worker processes: 'text' (one "
+        "readable line each) or 'json' (one JSON object per line with time, level, logger, "
+        "message and, for a record about a job, job_id and client).",
     )
     runner: str = Field(
         "core.pipeline:register",

@@ -89,6 +89,8 @@ class JobRow(Base):
     message: Mapped[str | None] = mapped_column(Text)
     error: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     quality: Mapped[dict[str, Any] | None] = mapped_column(JSON)
+    timings: Mapped[dict[str, float] | None] = mapped_column(JSON)
+    """Seconds per stage of a successful attempt (``matching``, ...), written by its worker."""
     options: Mapped[dict[str, Any]] = mapped_column(JSON)
     has_points: Mapped[bool] = mapped_column(Boolean, default=False)
     idempotency_key: Mapped[str | None] = mapped_column(String(255), unique=True)
@@ -154,6 +156,7 @@ class Job:
     webhook_last: datetime | None = None
     webhook_error: str | None = None
     webhook_delivery: str | None = None
+    timings: dict[str, float] | None = None
 
     @classmethod
     def from_row(cls, row: JobRow) -> Job:
@@ -473,15 +476,18 @@ class JobStore:
         message: str | None,
         error: dict[str, Any] | None = None,
         quality: dict[str, Any] | None = None,
+        timings: dict[str, float] | None = None,
     ) -> bool:
-        """End ``owner``'s attempt with ``status`` (successful or failed); False if the job is
-        no longer running under this owner."""
+        """End ``owner``'s attempt with ``status`` (successful or failed), and the seconds
+        per stage of a successful one; False if the job is no longer running under this
+        owner."""
         now = utcnow()
         values: dict[str, Any] = {
             "status": status.value,
             "message": message,
             "error": error,
             "quality": quality,
+            "timings": timings,
             "finished": now,
             "updated": now,
             "lease_owner": None,

@@ -39,6 +39,7 @@ from urllib.parse import urlsplit
 import httpx
 
 from service import __version__
+from service.logs import job_extra
 from service.settings import Settings
 from service.store import Job, JobStatus, JobStore, utcnow
 
@@ -366,7 +367,8 @@ class Webhooks:
         try:
             self.deliver(job)
         except Exception:  # noqa: BLE001
-            log.exception("webhook of job %s: attempt failed unexpectedly", job.id)
+            log.exception("webhook of job %s: attempt failed unexpectedly", job.id,
+                          extra=job_extra(job.id, job.owner))
         finally:
             with self._lock:
                 self._inflight.discard(job.id)
@@ -405,7 +407,8 @@ class Webhooks:
                     self.store.record_webhook(
                         job.id, current.webhook_delivery or "", attempts, "delivered", None, None
                     )
-                    log.info("webhook of job %s delivered (attempt %d)", job.id, attempts)
+                    log.info("webhook of job %s delivered (attempt %d)", job.id, attempts,
+                             extra=job_extra(job.id, job.owner))
                     return True
                 error = f"HTTP {code}"
                 if 300 <= code < 400:
@@ -415,7 +418,8 @@ class Webhooks:
         settings = self.settings
         if attempts >= settings.webhook_max_attempts:
             state, next_time = "failed", None
-            log.warning("webhook of job %s failed after %d attempts: %s", job.id, attempts, error)
+            log.warning("webhook of job %s failed after %d attempts: %s", job.id, attempts, error,
+                        extra=job_extra(job.id, job.owner))
         else:
             delay = settings.webhook_retry_delay * 2 ** (attempts - 1)
             state, next_time = "pending", utcnow() + timedelta(seconds=delay)

@@ -20,7 +20,7 @@ import threading
 import time
 import traceback
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -34,6 +34,7 @@ from core.errors import InputError, NotEnoughPointsError, UnreliableResultError
 from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
 from core.quality import refused
+from service.logs import configure_logging, job_extra
 from service.settings import Settings
 from service.storage import IMAGES, RESULTS, LocalStorage
 from service.store import JobStatus, JobStore
@@ -47,6 +48,28 @@ STAGES: dict[str, tuple[float, float]] = {
     "rendering": (90.0, 99.0),
 }
 """Stage -> (start, end) of the overall progress in percent."""
+
+STAGE_TIMINGS: dict[str, tuple[str, ...]] = {
+    "matching": ("matching_s",),
+    "triangulating": ("triangulation_s",),
+    "optimizing": ("optimization_s",),
+    "rendering": ("rendering_s", "quality_s"),
+}
+"""Stage -> the keys of the registration's ``timings`` it spans (the quality assessment runs
+within the 'rendering' stage of the progress)."""
+
+
+def stage_timings(timings: Mapping[str, float] | None) -> dict[str, float] | None:
+    """Seconds per stage (:data:`STAGE_TIMINGS`) from a registration's ``timings``, for the
+    job row; None if it has none."""
+    if not timings:
+        return None
+    stages = {}
+    for stage, keys in STAGE_TIMINGS.items():
+        values = [float(timings[k]) for k in keys if isinstance(timings.get(k), int | float)]
+        if values:
+            stages[stage] = sum(values)
+    return stages or None
 
 
 class Runner(Protocol):
@@ -241,7 +264,8 @@ class ProgressReporter:
                 self.interruption = exc
                 return
             except Exception:  # noqa: BLE001 (a database hiccup: try again next beat)
-                log.exception("job %s: heartbeat failed", self.job_id)
+                log.exception("job %s: heartbeat failed", self.job_id,
+                              extra=job_extra(self.job_id))
             if self.clock() - self.started > hard_limit:
                 detail = (
                     f"the job ran longer than the time limit of {settings.job_time_limit:g} s "
@@ -251,7 +275,7 @@ class ProgressReporter:
                     self.job_id, self.owner, JobStatus.failed, detail,
                     _problem("time-limit-exceeded", "Time limit exceeded", 500, detail),
                 )
-                log.error("job %s: %s", self.job_id, detail)
+                log.error("job %s: %s", self.job_id, detail, extra=job_extra(self.job_id))
                 self.context.abort()
                 return
 
@@ -284,11 +308,13 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     job = store.claim(job_id, owner, settings.lease_seconds)
     if job is None:
         return "skipped"
-    log.info("job %s: attempt %d started by %s", job_id, job.attempts, owner)
+    jlog = logging.LoggerAdapter(log, job_extra(job_id, job.owner))
+    jlog.info("job %s: attempt %d started by %s", job_id, job.attempts, owner)
     reporter = ProgressReporter(context, job_id, owner)
 
     def fail(error: dict[str, Any], quality: dict[str, Any] | None = None) -> str:
         if store.finish(job_id, owner, JobStatus.failed, error["detail"], error, quality):
+            jlog.info("job %s: failed: %s", job_id, error["detail"])
             return JobStatus.failed.value
         return _settle_lost(job_id, context)
 
@@ -311,21 +337,22 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         storage.publish_results(job_id, work)
         summary = result.summary()
         if store.finish(
-            job_id, owner, JobStatus.successful, summary, quality=result.quality.to_dict()
+            job_id, owner, JobStatus.successful, summary, quality=result.quality.to_dict(),
+            timings=stage_timings(getattr(result, "timings", None)),
         ):
-            log.info("job %s: successful: %s", job_id, summary)
+            jlog.info("job %s: successful: %s", job_id, summary)
             return JobStatus.successful.value
         return _settle_lost(job_id, context)
     except JobDismissed:
         storage.remove(job_id)
-        log.info("job %s: stopped, dismissed by the client", job_id)
+        jlog.info("job %s: stopped, dismissed by the client", job_id)
         return JobStatus.dismissed.value
     except LeaseLost:
-        log.warning("job %s: lease lost, attempt by %s abandoned", job_id, owner)
+        jlog.warning("job %s: lease lost, attempt by %s abandoned", job_id, owner)
         return "skipped"
     except WorkerStopping:
         store.release(job_id, owner, "requeued: the service was shut down while the job ran")
-        log.info("job %s: released for the next start", job_id)
+        jlog.info("job %s: released for the next start", job_id)
         return JobStatus.accepted.value
     except TimeLimitExceeded as exc:
         return fail(_problem("time-limit-exceeded", "Time limit exceeded", 500, str(exc)))
@@ -343,7 +370,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     except ValidationError as exc:
         return fail(_problem("registration-failed", "Invalid options", 422, str(exc), "options"))
     except Exception as exc:  # noqa: BLE001 (a bug must fail the job, not the worker)
-        log.error("job %s: internal error\n%s", job_id, traceback.format_exc())
+        jlog.error("job %s: internal error\n%s", job_id, traceback.format_exc())
         return fail(
             _problem(
                 "internal-error",
@@ -406,9 +433,7 @@ def init_process(
     global _PROCESS_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(settings.worker_threads)  # processes, not threads, share the cores
-    logging.basicConfig(
-        level=log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
-    )
+    configure_logging(log_level, settings.log_format)
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import logging
 import math
 import re
 import shutil
@@ -26,6 +27,7 @@ from core.options import RegistrationOptions
 from core.triangulation import delaunay_triangles
 from service.auth import ClientDep
 from service.deps import Services, ServicesDep
+from service.logs import job_extra
 from service.problems import (
     Problem,
     from_input_error,
@@ -43,6 +45,8 @@ from service.storage import IMAGES, RESULTS
 from service.store import IdempotencyConflict, Job, JobStatus
 from service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
 from service.webhooks import AllowList, parse_callback, webhook_info
+
+log = logging.getLogger(__name__)
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -258,6 +262,8 @@ def check_queue(services: Services, client: str | None) -> None:
     settings, store = services.settings, services.store
     queued = store.count_accepted()
     if queued >= settings.max_queued_jobs:
+        log.warning("submission refused: %d jobs wait, the service limit is %d", queued,
+                    settings.max_queued_jobs, extra={"client": client})
         raise too_many_jobs(
             f"{queued} jobs are waiting for a worker, the limit of the service is "
             f"{settings.max_queued_jobs}; try again later",
@@ -266,6 +272,8 @@ def check_queue(services: Services, client: str | None) -> None:
     if client is not None:
         mine = store.count_accepted(client)
         if mine >= settings.max_queued_per_client:
+            log.warning("submission refused: %d jobs of the client wait, the limit is %d", mine,
+                        settings.max_queued_per_client, extra={"client": client})
             raise too_many_jobs(
                 f"{mine} of your jobs are waiting for a worker, the limit per client is "
                 f"{settings.max_queued_per_client}; try again when some have started",
@@ -498,8 +506,12 @@ async def submit_job(
     finally:
         await run_in_threadpool(storage.discard, staging)
     response.headers["Location"] = job_href(request, job.id)
-    if not created:
+    if created:
+        services.metrics.job_submitted(client)
+        log.info("job %s: accepted", job.id, extra=job_extra(job.id, client))
+    else:
         response.headers["Idempotent-Replayed"] = "true"
+        log.info("job %s: idempotent replay", job.id, extra=job_extra(job.id, client))
     return status_info(job, request)
 
 
@@ -581,9 +593,10 @@ def get_job(
     responses={204: {"description": "Dismissed."}, **problem_responses(401, 404)},
 )
 def dismiss_job(job_id: str, services: ServicesDep, client: ClientDep) -> Response:
-    _get_job(services, job_id, client)
+    job = _get_job(services, job_id, client)
     services.store.dismiss(job_id)
     services.storage.remove(job_id)
+    log.info("job %s: dismissed by the client", job_id, extra=job_extra(job_id, job.owner))
     if services.webhooks is not None:
         services.webhooks.wake()
     return Response(status_code=204)

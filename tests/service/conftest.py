@@ -22,12 +22,13 @@ def pair() -> Pair:
 @pytest.fixture(scope="session")
 def start_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[..., Server]]:
     """Start servers (stopped at the end of the session): ``start_server(**env)``; the data
-    directory can be given to restart over the same data."""
+    directory can be given to restart over the same data, and the log level (default
+    ``warning``)."""
     servers: list[Server] = []
 
-    def start(data_dir: Path | None = None, **env: str) -> Server:
+    def start(data_dir: Path | None = None, log_level: str = "warning", **env: str) -> Server:
         data_dir = data_dir or tmp_path_factory.mktemp("service") / "data"
-        server = Server(data_dir, {**BASE_ENV, **env}).start()
+        server = Server(data_dir, {**BASE_ENV, **env}, log_level).start()
         servers.append(server)
         return server
 

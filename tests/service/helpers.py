@@ -18,6 +18,7 @@ from typing import Any
 import cv2
 import httpx
 import numpy as np
+from prometheus_client.parser import text_string_to_metric_families
 
 REPO = Path(__file__).resolve().parents[2]
 FINISHED = ("successful", "failed", "dismissed")
@@ -99,11 +100,14 @@ class Server:
         Its data directory (kept across restarts).
     env : dict
         ``PWLREG_*`` settings.
+    log_level : str
+        ``--log-level`` of ``pwlreg serve``.
     """
 
-    def __init__(self, data_dir: Path, env: dict[str, str]) -> None:
+    def __init__(self, data_dir: Path, env: dict[str, str], log_level: str = "warning") -> None:
         self.data_dir = data_dir
         self.env = env
+        self.log_level = log_level
         self.process: subprocess.Popen[bytes] | None = None
         self.port = 0
         self.log_path = data_dir.parent / f"{data_dir.name}-server.log"
@@ -119,7 +123,7 @@ class Server:
         log = self.log_path.open("ab")
         self.process = subprocess.Popen(
             [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
-             "--port", str(self.port), "--log-level", "warning"],
+             "--port", str(self.port), "--log-level", self.log_level],
             cwd=REPO,
             env=env,
             stdout=log,
@@ -235,3 +239,26 @@ def assert_problem(response: httpx.Response, status: int, field: str | None = No
     if field is not None:
         assert doc.get("field") == field, doc
     return doc
+
+
+# --- metrics ---------------------------------------------------------------------------------
+
+
+Samples = dict[str, list[tuple[dict[str, str], float]]]
+
+
+def metric_samples(text: str) -> Samples:
+    """The samples of a Prometheus exposition text, by sample name (``x_total``,
+    ``x_bucket``, ...), each as (labels, value); the text must parse."""
+    samples: Samples = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            samples.setdefault(sample.name, []).append((dict(sample.labels), sample.value))
+    return samples
+
+
+def one(samples: Samples, name: str, **labels: str) -> float:
+    """The value of the one sample ``name`` with exactly ``labels`` (0 if there is none)."""
+    values = [value for got, value in samples.get(name, []) if got == labels]
+    assert len(values) <= 1, (name, labels, values)
+    return values[0] if values else 0.0

@@ -16,7 +16,15 @@ from sqlalchemy import inspect
 from service.auth import load_api_keys
 from service.settings import Settings
 from service.store import JobStore
-from tests.service.helpers import Pair, Server, assert_problem, submit, wait_for
+from tests.service.helpers import (
+    Pair,
+    Server,
+    assert_problem,
+    metric_samples,
+    one,
+    submit,
+    wait_for,
+)
 
 ALICE, BOB, CAROL = "alice-key-0001", "bare-key-0002", "carol-key-0003"
 JOB_ROUTES = ("", "/mesh", "/registered.png", "/convergence")
@@ -215,6 +223,13 @@ def test_full_queue_is_429_with_retry_after(start_server: Callable[..., Server],
         assert_problem(client.post("/v1/jobs", headers={**auth(CAROL),
                                    "content-type": "multipart/form-data; boundary=x"},
                                    content=b"x" * 1000), 429)
+        # The metrics count the jobs and the refusals per client (a replay is neither).
+        samples = metric_samples(client.get("/metrics", headers=auth(BOB)).text)
+        submitted, refusals = "pwlreg_jobs_submitted_total", "pwlreg_submissions_refused_total"
+        assert one(samples, submitted, client="alice") == 2
+        assert one(samples, submitted, client="bob") == 1
+        assert one(samples, refusals, client="alice", code="429") == 1
+        assert one(samples, refusals, client="carol", code="429") == 2
         for job_id, key_ in jobs:
             assert client.delete(f"/v1/jobs/{job_id}", headers=auth(key_)).status_code == 204
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import io
 import json
-import re
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
@@ -13,9 +12,19 @@ from datetime import datetime
 
 import numpy as np
 from PIL import Image
+from prometheus_client import CONTENT_TYPE_LATEST
 
 from core.options import RegistrationOptions
-from tests.service.helpers import Pair, Server, assert_problem, make_pair, submit, wait_for
+from tests.service.helpers import (
+    Pair,
+    Server,
+    assert_problem,
+    make_pair,
+    metric_samples,
+    one,
+    submit,
+    wait_for,
+)
 
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
 
@@ -195,24 +204,26 @@ def test_health_readiness_and_metrics(server: Server, pair: Pair) -> None:
 
         job_id = submit(client, pair, options={"optimizer": "none"}).json()["id"]
         wait_for(client, job_id)
-        text = client.get("/metrics")
-        assert text.headers["content-type"].startswith("text/plain")
-        body = text.text
-        counts = {}
-        for status in ("accepted", "running", "successful", "failed", "dismissed"):
-            match = re.search(rf'^pwlreg_jobs{{status="{status}"}} (\d+)$', body, re.M)
-            assert match, status
-            counts[status] = int(match.group(1))
+        answer = client.get("/metrics")
+        assert answer.headers["content-type"] == CONTENT_TYPE_LATEST
+        samples = metric_samples(answer.text)
+        counts = {labels["status"]: value for labels, value in samples["pwlreg_jobs"]}
+        assert set(counts) == {"accepted", "running", "successful", "failed", "dismissed"}
         listed = client.get("/v1/jobs", params={"limit": 1}).json()["numberMatched"]
         assert sum(counts.values()) == listed
         assert counts["successful"] >= 1
-        assert re.search(r"^pwlreg_queue_depth \d+$", body, re.M)
-        count = re.search(r'^pwlreg_job_duration_seconds_count{status="successful"} (\d+)$',
-                          body, re.M)
-        assert count and int(count.group(1)) >= 1
-        inf = re.search(r'^pwlreg_job_duration_seconds_bucket{status="successful",le="\+Inf"} '
-                        r"(\d+)$", body, re.M)
-        assert inf and inf.group(1) == count.group(1)
+        assert samples["pwlreg_queue_depth"][0][1] >= 0
+        assert samples["pwlreg_workers"] == [({}, 2.0)]
+        # Without API keys the submissions count under the empty client.
+        assert one(samples, "pwlreg_jobs_submitted_total", client="") >= 1
+        # The job's duration and the seconds of each of its stages, observed when it ended.
+        count = one(samples, "pwlreg_job_duration_seconds_count", status="successful")
+        assert count >= 1
+        assert one(samples, "pwlreg_job_duration_seconds_bucket", status="successful",
+                   le="+Inf") == count
+        for stage in ("matching", "triangulating", "optimizing", "rendering"):
+            assert one(samples, "pwlreg_stage_duration_seconds_count", stage=stage) >= 1
+            assert one(samples, "pwlreg_stage_duration_seconds_sum", stage=stage) >= 0
 
 
 def test_concurrent_requests_with_one_idempotency_key_make_one_job(

@@ -4,6 +4,7 @@ real data directory, with registration functions injected into the worker."""
 from __future__ import annotations
 
 import json
+import logging
 import os
 import threading
 import time
@@ -17,6 +18,7 @@ from sqlalchemy import update
 
 from core.options import RegistrationOptions
 from core.pipeline import register
+from service.logs import JsonFormatter
 from service.maintenance import Janitor
 from service.metrics import Metrics
 from service.settings import Settings
@@ -28,8 +30,9 @@ from service.worker import (
     TimeLimitExceeded,
     WorkerContext,
     run_job,
+    stage_timings,
 )
-from tests.service.helpers import Pair
+from tests.service.helpers import Pair, metric_samples, one
 
 DEFAULTS = RegistrationOptions().model_dump(mode="json")
 
@@ -299,16 +302,44 @@ def test_stop_event_gives_the_job_back(context: WorkerContext, pair: Pair) -> No
 
 def test_metrics_histogram_is_cumulative() -> None:
     metrics = Metrics()
+    metrics.track_store(lambda: {s: 0 for s in JobStatus}, lambda: 3, 2)
     for seconds in (0.05, 0.3, 0.3, 7.0, 5000.0):
-        metrics.observe_job("successful", seconds)
-    text = metrics.render({s: 0 for s in JobStatus}, queue_depth=3, workers=2)
-    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="0.1"} 1' in text
-    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="0.5"} 3' in text
-    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="10.0"} 4' in text
-    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="1800.0"} 4' in text
-    assert 'pwlreg_job_duration_seconds_bucket{status="successful",le="+Inf"} 5' in text
-    assert 'pwlreg_job_duration_seconds_count{status="successful"} 5' in text
-    assert "pwlreg_queue_depth 3" in text
+        metrics.observe_job("successful", seconds, {"matching": seconds / 2})
+    samples = metric_samples(metrics.render().decode())
+    bucket = "pwlreg_job_duration_seconds_bucket"
+    assert one(samples, bucket, status="successful", le="0.1") == 1
+    assert one(samples, bucket, status="successful", le="0.5") == 3
+    assert one(samples, bucket, status="successful", le="10.0") == 4
+    assert one(samples, bucket, status="successful", le="1800.0") == 4
+    assert one(samples, bucket, status="successful", le="+Inf") == 5
+    assert one(samples, "pwlreg_job_duration_seconds_count", status="successful") == 5
+    assert one(samples, "pwlreg_stage_duration_seconds_count", stage="matching") == 5
+    assert one(samples, "pwlreg_queue_depth") == 3
+    assert one(samples, "pwlreg_jobs", status="accepted") == 0
+    # A second instance has its own registry: nothing shared, nothing clashes.
+    assert one(metric_samples(Metrics().render().decode()),
+               "pwlreg_job_duration_seconds_count", status="successful") == 0
+
+
+def test_stage_timings_from_the_registration() -> None:
+    timings = {"matching_s": 1.0, "triangulation_s": 0.5, "optimization_s": 2.0,
+               "rendering_s": 0.25, "quality_s": 0.125, "total_s": 3.875}
+    assert stage_timings(timings) == {"matching": 1.0, "triangulating": 0.5, "optimizing": 2.0,
+                                      "rendering": 0.375}
+    assert stage_timings(None) is None and stage_timings({}) is None
+
+
+def test_json_log_records_carry_the_job() -> None:
+    record = logging.LogRecord("service.worker", logging.INFO, __file__, 1, "job %s: %s", ("j1",
+                               'said "hi"\nthen left'), None)
+    record.job_id, record.client = "j1", "alice"
+    doc = json.loads(JsonFormatter().format(record))
+    assert doc["message"] == 'job j1: said "hi"\nthen left'
+    assert (doc["level"], doc["logger"], doc["job_id"], doc["client"]) == (
+        "INFO", "service.worker", "j1", "alice")
+    assert doc["time"].endswith("Z")
+    plain = logging.LogRecord("x", logging.WARNING, __file__, 1, "no job", None, None)
+    assert "job_id" not in json.loads(JsonFormatter().format(plain))
 
 
 def test_storage_sweep_removes_leftovers_only(tmp_path: Path) -> None:
@@ -404,3 +435,6 @@ def test_jobs_queued_by_the_previous_version_still_run(context: WorkerContext, p
                                                       cv2.IMREAD_UNCHANGED))
         (inputs / name).unlink()
     assert run_job(job_id, context) == "successful"
+    job = context.store.get(job_id)
+    assert job is not None and job.timings is not None  # seconds per stage, for the metrics
+    assert set(job.timings) == {"matching", "triangulating", "optimizing", "rendering"}
