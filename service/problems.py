@@ -27,6 +27,14 @@ PROBLEM_MEDIA_TYPE = "application/problem+json"
 TYPE_PREFIX = "urn:pwlreg:problem:"
 
 
+def problem_document(
+    slug: str, title: str, status: int, detail: str, field: str | None = None, **extra: Any
+) -> dict[str, Any]:
+    """A problem document as a JSON-ready dict, for the errors stored with a failed job (the
+    worker's and the store's): the same shape as every error answer of the API."""
+    return Problem(status, slug, title, detail, field, **extra).to_dict()
+
+
 class Problem(Exception):
     """An error answer, raised anywhere in the API and rendered by the installed handler.
 

@@ -560,12 +560,12 @@ class JobStore:
                     f"the worker running this job stopped {attempts} times (process killed, "
                     f"out of memory or server restarted); gave up after {max_attempts} attempts"
                 )
-                error = {
-                    "type": "urn:pwlreg:problem:attempts-exhausted",
-                    "title": "Job attempts exhausted",
-                    "status": 500,
-                    "detail": message,
-                }
+                # Late: service.problems imports the API schemas, which import this module.
+                from service.problems import problem_document
+
+                error = problem_document(
+                    "attempts-exhausted", "Job attempts exhausted", 500, message
+                )
                 n = self._update(
                     update(JobRow)
                     .where(*still_expired)

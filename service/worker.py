@@ -35,6 +35,7 @@ from core.io import load_points, read_image, write_outputs
 from core.options import RegistrationOptions
 from core.quality import refused
 from service.logs import configure_logging, job_extra
+from service.problems import problem_document
 from service.settings import Settings
 from service.storage import IMAGES, RESULTS, LocalStorage
 from service.store import JobStatus, JobStore
@@ -273,23 +274,11 @@ class ProgressReporter:
                 )
                 self.context.store.finish(
                     self.job_id, self.owner, JobStatus.failed, detail,
-                    _problem("time-limit-exceeded", "Time limit exceeded", 500, detail),
+                    problem_document("time-limit-exceeded", "Time limit exceeded", 500, detail),
                 )
                 log.error("job %s: %s", self.job_id, detail, extra=job_extra(self.job_id))
                 self.context.abort()
                 return
-
-
-def _problem(slug: str, title: str, status: int, detail: str, field: str | None = None) -> dict:
-    doc: dict[str, Any] = {
-        "type": f"urn:pwlreg:problem:{slug}",
-        "title": title,
-        "status": status,
-        "detail": detail,
-    }
-    if field is not None:
-        doc["field"] = field
-    return doc
 
 
 def _owner() -> str:
@@ -355,27 +344,30 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         jlog.info("job %s: released for the next start", job_id)
         return JobStatus.accepted.value
     except TimeLimitExceeded as exc:
-        return fail(_problem("time-limit-exceeded", "Time limit exceeded", 500, str(exc)))
+        return fail(problem_document("time-limit-exceeded", "Time limit exceeded", 500, str(exc)))
     except UnreliableResultError as exc:
         return fail(
-            _problem("unreliable-result", "Registration unreliable", 422, str(exc)), exc.quality
+            problem_document("unreliable-result", "Registration unreliable", 422, str(exc)),
+            exc.quality,
         )
     except InputError as exc:
         field = getattr(exc, "field", None)
         detail = f"{field}: {exc}" if field else str(exc)
         # Too few reliable pairs is a verdict on the images too: unreliable, and why.
         quality = refused(str(exc), exc.found) if isinstance(exc, NotEnoughPointsError) else None
-        return fail(_problem("registration-failed", "Input cannot be registered", 422, detail,
-                             field), quality)
+        return fail(
+            problem_document("registration-failed", "Input cannot be registered", 422, detail,
+                             field),
+            quality,
+        )
     except ValidationError as exc:
-        return fail(_problem("registration-failed", "Invalid options", 422, str(exc), "options"))
+        return fail(
+            problem_document("registration-failed", "Invalid options", 422, str(exc), "options")
+        )
     except Exception as exc:  # noqa: BLE001 (a bug must fail the job, not the worker)
         jlog.error("job %s: internal error\n%s", job_id, traceback.format_exc())
         return fail(
-            _problem(
-                "internal-error",
-                "Internal error",
-                500,
+            problem_document("internal-error", "Internal error", 500,
                 f"internal error while registering: {type(exc).__name__}: {exc}",
             )
         )
