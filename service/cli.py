@@ -198,8 +198,10 @@ def cmd_submit(args: argparse.Namespace) -> int:
             raise CommandError(f"{name}: no such file: {path}")
     out.mkdir(parents=True, exist_ok=True)
     headers = {"Idempotency-Key": args.idempotency_key} if args.idempotency_key else {}
+    auth = {"Authorization": f"Bearer {args.api_key}"} if args.api_key else {}
     bar = None if args.quiet else ProgressBar()
-    with httpx.Client(base_url=args.url, timeout=httpx.Timeout(60.0, connect=10.0)) as client:
+    with httpx.Client(base_url=args.url, timeout=httpx.Timeout(60.0, connect=10.0),
+                      headers=auth) as client:
         handles = {name: path.open("rb") for name, path in paths.items()}
         try:
             files = {name: (paths[name].name, fh) for name, fh in handles.items()}
@@ -350,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     submit.add_argument("--url", default=os.environ.get("PWLREG_URL", DEFAULT_URL),
                         help=f"service URL (default: PWLREG_URL or {DEFAULT_URL})")
     submit.add_argument("--idempotency-key", help="send this Idempotency-Key (safe retries)")
+    submit.add_argument("--api-key", default=os.environ.get("PWLREG_API_KEY"),
+                        help="API key of a service that requires one (default: $PWLREG_API_KEY)")
     submit.add_argument("--poll-interval", type=float, default=0.5,
                         help="seconds between status polls (default: 0.5)")
     submit.add_argument("--timeout", type=float, default=3600.0,

@@ -289,3 +289,21 @@ def test_points_on_the_border_tolerance_are_accepted(server: Server, pair: Pair)
         response = submit(client, pair, points=points)
         assert response.status_code == 201, response.text
         client.delete(f"/v1/jobs/{response.json()['id']}")
+
+
+def test_the_command_line_sends_the_api_key(keyed_server: Server, pair: Pair,
+                                            tmp_path: Path) -> None:
+    from tests.service.test_cli import pwlreg
+
+    ref, mov, pts = (tmp_path / n for n in ("r.png", "m.png", "p.json"))
+    ref.write_bytes(pair.reference_png)
+    mov.write_bytes(pair.moving_png)
+    pts.write_bytes(pair.points_json)
+    args = ["submit", str(ref), str(mov), "--points", str(pts), "--url", keyed_server.url,
+            "--out", str(tmp_path / "out"), "-q", "--optimizer", "none"]
+    run = pwlreg(*args)
+    assert run.returncode == 1 and "401" in run.stderr
+    run = pwlreg(*args, "--api-key", ALICE)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "out" / "mesh.json").exists()
+    assert ALICE not in run.stdout + run.stderr
