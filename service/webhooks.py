@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
@@ -165,6 +165,43 @@ def check_target(url: str, allow: AllowList) -> str:
                 "service's own networks are refused unless PWLREG_WEBHOOK_ALLOW allows them"
             )
     return url
+
+
+@dataclass(frozen=True)
+class PinnedRequest:
+    """A webhook request bound to the address that was checked (so that DNS cannot answer
+    differently between the check and the connection)."""
+
+    url: str
+    headers: dict[str, str]
+    extensions: dict[str, Any]
+
+
+def pinned_target(url: str, allow: AllowList) -> PinnedRequest:
+    """Check ``url`` (:func:`check_target`) and bind it to the first address that passed.
+
+    A host allowed by name keeps its URL (the operator vouches for it). Otherwise the request
+    goes to the checked IP address, with the original ``Host`` header and, for https, the
+    original name for SNI and certificate verification.
+
+    Raises
+    ------
+    TargetError
+        As :func:`check_target`.
+    """
+    check_target(url, allow)
+    parts = urlsplit(url)
+    host = parts.hostname or ""
+    if allow.allows_host(host):
+        return PinnedRequest(url, {}, {})
+    https = parts.scheme.lower() == "https"
+    port = parts.port or (443 if https else 80)
+    address = _resolve(host, port)[0]
+    literal = f"[{address}]" if isinstance(address, ipaddress.IPv6Address) else str(address)
+    pinned = urlunsplit((parts.scheme, f"{literal}:{port}", parts.path or "/", parts.query, ""))
+    headers = {"Host": parts.netloc.rsplit("@", 1)[-1]}
+    extensions = {"sni_hostname": host} if https else {}
+    return PinnedRequest(pinned, headers, extensions)
 
 
 def parse_callback(
@@ -386,13 +423,16 @@ class Webhooks:
             error = "no target"
         else:
             try:
-                check_target(url, self.allow)  # DNS may have changed since the submission
+                # DNS may have changed since the submission; the request goes to the address
+                # checked now.
+                target = pinned_target(url, self.allow)
             except TargetError as exc:
                 error = f"target refused: {exc}"
         if error is None:
             assert url is not None and self._client is not None
             body = self.render(current)
             headers = {
+                **target.headers,
                 "Content-Type": "application/json",
                 SIGNATURE_HEADER: sign(self.secret, body),
                 EVENT_HEADER: f"job.{current.status.value}",
@@ -401,7 +441,8 @@ class Webhooks:
             try:
                 # Streamed and closed unread: only the status code counts, so a large answer
                 # costs nothing.
-                with self._client.stream("POST", url, content=body, headers=headers) as response:
+                with self._client.stream("POST", target.url, content=body, headers=headers,
+                                         extensions=target.extensions) as response:
                     code = response.status_code
                 if 200 <= code < 300:
                     self.store.record_webhook(

@@ -304,3 +304,16 @@ def test_a_pending_delivery_survives_a_restart(tmp_path: Path, receiver: Receive
     assert job.webhook_next is None and job.webhook_last is not None
     assert job.webhook_last <= utcnow() + timedelta(seconds=1)
     store.dispose()
+
+
+def test_deliveries_go_to_the_address_that_was_checked() -> None:
+    from service.webhooks import pinned_target
+
+    pinned = pinned_target("http://localhost:8123/hook?x=1", AllowList.parse("127.0.0.1"))
+    assert pinned.url == "http://127.0.0.1:8123/hook?x=1"
+    assert pinned.headers == {"Host": "localhost:8123"} and pinned.extensions == {}
+    by_name = pinned_target("http://localhost:8123/hook", AllowList.parse("localhost"))
+    assert by_name.url == "http://localhost:8123/hook" and by_name.headers == {}
+    tls = pinned_target("https://93.184.216.34/hook", AllowList.parse(None))
+    assert tls.url == "https://93.184.216.34:443/hook"
+    assert tls.extensions == {"sni_hostname": "93.184.216.34"}
