@@ -219,6 +219,7 @@ def register(
         mi=(search.initial_mi, search.final_mi),
         nmi=(search.initial_nmi, search.final_nmi),
         mapped_coverage=float(np.count_nonzero(registered[:, :, -1])) / registered[:, :, -1].size,
+        shape=reference.shape[:2],
         scale=scale,
     )
     timings["quality_s"] = time.perf_counter() - t

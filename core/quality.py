@@ -160,10 +160,6 @@ def peak_scores(
     return scores, entropy, global_peak
 
 
-def _coverage(tri_xy: np.ndarray, shape: tuple[int, int]) -> float:
-    return float(triangle_areas(tri_xy).sum()) / float(shape[0] * shape[1])
-
-
 def assess(
     images: ScoringImages,
     reference_vertices: np.ndarray,
@@ -176,6 +172,7 @@ def assess(
     mi: tuple[float, float],
     nmi: tuple[float, float],
     mapped_coverage: float,
+    shape: tuple[int, int],
     scale: float = 1.0,
 ) -> Quality:
     """Verdict of a registration from its final mesh and the matching record.
@@ -197,6 +194,8 @@ def assess(
         Global MI (bits) and NMI before and after the search.
     mapped_coverage : float
         Share of the reference frame mapped inside the moving image (opaque in registered.png).
+    shape : (int, int)
+        ``(height, width)`` of the reference image (the frame the coverages are shares of).
     scale : float
         Scale of ``images`` against the full-resolution vertices.
 
@@ -218,7 +217,8 @@ def assess(
     low = textured & (scores < 1.0 - LOW_CONSISTENCY)
     low_share = float(areas[low].sum()) / textured_area if textured_area > 0 else 1.0
     measured_area = float(areas[measured].sum())
-    frame_area = float(images.shape[0] * images.shape[1])
+    # Areas in full-resolution pixels: ``images`` may be a reduced level.
+    frame_area = float(shape[0] * shape[1])
     outer = ~measured & np.isfinite(scores)
     outer_area = float(areas[outer].sum())
     outer_low = float(areas[outer & (scores < 1.0 - LOW_CONSISTENCY)].sum())
@@ -232,7 +232,7 @@ def assess(
         "dropped": {k: int(v) for k, v in rejected.items() if v},
         "inlier_share": kept / candidates if candidates else 0.0,
         "measured_coverage": measured_area / frame_area,
-        "mesh_coverage": _coverage(ref[tris], images.shape),
+        "mesh_coverage": float(areas.sum()) / frame_area,
         "mapped_coverage": float(mapped_coverage),
         "mi_before": float(mi[0]),
         "mi_after": float(mi[1]),

@@ -64,3 +64,16 @@ def test_peak_scores_are_high_at_the_truth_and_low_one_shift_away():
     off, _, peak_off = peak_scores(images, r, m + [8.0, 0.0])
     assert good[0] > 0.3 and peak_good > 0.3
     assert peak_off < 0.1
+
+
+def test_coverages_are_shares_of_the_full_frame_on_a_large_image():
+    """The verdict works on a reduced copy of a large image; its coverages must not."""
+    reference = texture((300, 1400), 4)
+    rng = np.random.default_rng(1)
+    ref = rng.uniform([300, 60], [1100, 240], (60, 2))
+    r = register(reference, reference, (ref, ref + 0.3), {"optimizer": "none"})
+    f = r.quality.figures
+    assert 0.99 < f["mesh_coverage"] <= 1.0 + 1e-9
+    assert 0.2 < f["measured_coverage"] < 0.6
+    assert f["measured_coverage"] + f["extrapolated_coverage"] == pytest.approx(
+        f["mesh_coverage"])
