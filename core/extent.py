@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
+from core.reliability import weighted_affine
 from core.similarity import ScoringImages, mutual_information, triangle_statistics
 
 #: Pairs the local model of a border vertex is fitted to.
@@ -84,9 +85,7 @@ def local_affine_extrapolation(
     X = np.concatenate([(ref[nb] - centre) / scale[:, :, None], np.ones((len(tgt), kk, 1))], 2)
     Y = mov[nb]
     for _ in range(2):
-        Xw = X * weight[:, :, None]
-        A = np.linalg.solve(np.einsum("nki,nkj->nij", Xw, X) + 1e-9 * np.eye(3),
-                            np.einsum("nki,nkj->nij", Xw, Y))
+        A = weighted_affine(X, Y, weight, ridge=1e-9)
         miss = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
         limit = 3.0 * np.median(miss, axis=1, keepdims=True) + 0.5
         weight = np.where(miss <= limit, weight, 0.0)

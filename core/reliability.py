@@ -61,17 +61,12 @@ class UniquenessResult:
     ok : ndarray of bool, shape (N,)
         The pair passed both scales.
     cause : ndarray of object, shape (N,)
-        ``""`` for kept pairs, else ``"ambiguous"``, ``"disagreement"`` or ``"low texture"``.
-    peak : ndarray of float, shape (N,)
-        Best normalized correlation at the fine scale (NaN when not computed).
-    ratio : ndarray of float, shape (N,)
-        Largest ratio of the second to the best peak over the two scales (NaN when not computed).
+        ``""`` for kept pairs, else ``"ambiguous"``, ``"disagreement"``, ``"low texture"`` or
+        ``"unverifiable"``.
     """
 
     ok: np.ndarray
     cause: np.ndarray
-    peak: np.ndarray
-    ratio: np.ndarray
 
     def counts(self) -> dict[str, int]:
         """Number of dropped pairs per cause."""
@@ -203,7 +198,6 @@ def uniqueness(
     flat = np.zeros(n, bool)
     disagree = np.zeros(n, bool)
     ratio = np.full(n, -np.inf)
-    peak = np.full(n, np.nan)
     for a, b, scale, template, radius in levels:
         # A pair already rejected on a finer scale costs no more correlations.
         alive = ~(disagree | (ratio >= AMBIGUITY_RATIO))
@@ -212,8 +206,6 @@ def uniqueness(
             alive,
         )
         done = np.isfinite(best_s)
-        if scale == 1.0:
-            peak = best_s
         checked |= done
         flat |= flat_s
         disagree |= done & (dist_s > AGREEMENT_PX)
@@ -224,7 +216,7 @@ def uniqueness(
     cause[~checked & flat] = "low texture"
     cause[checked & disagree] = "disagreement"
     cause[checked & (ratio >= AMBIGUITY_RATIO)] = "ambiguous"
-    return UniquenessResult(ok=cause == "", cause=cause, peak=peak, ratio=ratio)
+    return UniquenessResult(ok=cause == "", cause=cause)
 
 
 def neighbour_outliers(
@@ -374,11 +366,11 @@ def _local_fits(
     Y = mov[nb]
     weight = near.astype(np.float64)
     for _ in range(2):
-        A = _weighted_affine(X, Y, weight)
+        A = weighted_affine(X, Y, weight)
         res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
         spread = _masked_median(res, near)[:, None]
         weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
-    A = _weighted_affine(X, Y, weight)
+    A = weighted_affine(X, Y, weight)
     res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
     return _LocalFits(A, centre, nb, near, near.sum(axis=1) >= 5, _masked_median(res, near))
 
@@ -393,9 +385,13 @@ def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(count > 0, 0.5 * (lo + hi), 0.0)
 
 
-def _weighted_affine(X: np.ndarray, Y: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Batched weighted least-squares affine maps ``Y ~ X A``, ``A`` of shape (n, 3, 2)."""
+def weighted_affine(
+    X: np.ndarray, Y: np.ndarray, weight: np.ndarray, *, ridge: float = 1e-6
+) -> np.ndarray:
+    """Batched weighted least-squares affine maps ``Y ~ X A``: ``X`` (n, k, 3) with a column of
+    ones, ``Y`` (n, k, 2), ``weight`` (n, k); ``A`` of shape (n, 3, 2). ``ridge`` keeps a fit
+    with too few weighted points solvable."""
     Xw = X * weight[:, :, None]
-    XtX = np.einsum("nki,nkj->nij", Xw, X) + 1e-6 * np.eye(3)
+    XtX = np.einsum("nki,nkj->nij", Xw, X) + ridge * np.eye(3)
     XtY = np.einsum("nki,nkj->nij", Xw, Y)
     return np.linalg.solve(XtX, XtY)

@@ -11,12 +11,17 @@ import time
 from datetime import timedelta
 
 from service.logs import job_extra
+from service.problems import problem_document
 from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import LocalStorage
 from service.store import JobStore, utcnow
 
 log = logging.getLogger(__name__)
+
+
+def _attempts_exhausted(message: str) -> dict:
+    return problem_document("attempts-exhausted", "Job attempts exhausted", 500, message)
 
 LEFTOVER_AGE_SECONDS = 3600.0
 """Staging directories and job directories without a row are removed after this long."""
@@ -47,7 +52,7 @@ class Janitor:
 
     def recover(self) -> tuple[list[str], list[str]]:
         """Requeue the running jobs whose lease expired (fail those out of attempts)."""
-        requeued, failed = self.store.recover_expired()
+        requeued, failed = self.store.recover_expired(_attempts_exhausted)
         for job_id in requeued:
             log.warning("job %s: lease expired (worker died); requeued", job_id,
                         extra=job_extra(job_id))

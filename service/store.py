@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 import uuid
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
 from typing import Any
@@ -531,8 +531,11 @@ class JobStore:
         )
         return self.get(job_id)
 
-    def recover_expired(self, now: datetime | None = None) -> tuple[list[str], list[str]]:
-        """Requeue running jobs whose lease expired; fail those out of attempts.
+    def recover_expired(
+        self, failure: Callable[[str], dict[str, Any]], now: datetime | None = None
+    ) -> tuple[list[str], list[str]]:
+        """Requeue running jobs whose lease expired; fail those out of attempts, with the error
+        document ``failure(message)``.
 
         Returns
         -------
@@ -560,12 +563,7 @@ class JobStore:
                     f"the worker running this job stopped {attempts} times (process killed, "
                     f"out of memory or server restarted); gave up after {max_attempts} attempts"
                 )
-                # Late: service.problems imports the API schemas, which import this module.
-                from service.problems import problem_document
-
-                error = problem_document(
-                    "attempts-exhausted", "Job attempts exhausted", 500, message
-                )
+                error = failure(message)
                 n = self._update(
                     update(JobRow)
                     .where(*still_expired)
