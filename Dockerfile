@@ -24,12 +24,13 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 # The placeholder packages and setuptools' build directory go away with the layer: build/ would
 # otherwise hold the empty placeholders, newer than the real files copied next.
-RUN mkdir core service \
-    && touch core/__init__.py service/__init__.py \
+RUN mkdir -p pwlreg core service/api \
+    && touch pwlreg/__init__.py core/__init__.py service/__init__.py service/api/__init__.py \
     && pip install --upgrade pip \
     && pip install . \
     && pip uninstall -y pwlreg \
-    && rm -rf build core service ./*.egg-info
+    && rm -rf build pwlreg core service ./*.egg-info
+COPY pwlreg ./pwlreg
 COPY core ./core
 COPY service ./service
 # The import check runs from / so that it sees the installed package, not the sources. The
@@ -37,8 +38,8 @@ COPY service ./service
 # serves its first job without the few seconds of compilation (on another CPU model numba
 # compiles again, into the same writable cache).
 RUN pip install --no-deps . \
-    && cd / && python -c "import cv2, core.pipeline, service.app, service.cli" \
-    && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from core.pipeline import warm_up; warm_up()"
+    && cd / && python -c "import cv2, pwlreg, pwlreg.core.pipeline, pwlreg.service.app, pwlreg.service.cli" \
+    && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from pwlreg.core.pipeline import warm_up; warm_up()"
 
 # --- runtime: the virtual environment only, as a non-root user ----------------------------------
 FROM python:${PYTHON_VERSION}-slim AS runtime

@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 
 from bench import realdata
-from core.errors import NotEnoughPointsError
-from core.matching import find_conjugate_points
-from core.options import RegistrationOptions
+from pwlreg.core.errors import NotEnoughPointsError
+from pwlreg.core.matching import find_conjugate_points
+from pwlreg.core.options import RegistrationOptions
 
 
 def run_pair(pair: realdata.RealPair, options: RegistrationOptions, repeat: int = 1) -> dict:

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.similarity import mutual_information
-from core.warp import piecewise_map
+from pwlreg.core.similarity import mutual_information
+from pwlreg.core.warp import piecewise_map
 
 __all__ = [
     "EdgeCompatibility",

@@ -79,8 +79,8 @@ class Server:
                "PYTHONPATH": str(REPO)}
         with self.log_path.open("ab") as log:
             self.process = subprocess.Popen(
-                [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1", "--port",
-                 str(self.port), "--log-level", "info"],
+                [sys.executable, "-m", "pwlreg.service.cli", "serve", "--host", "127.0.0.1",
+                 "--port", str(self.port), "--log-level", "info"],
                 cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
             )
         deadline = time.monotonic() + timeout

@@ -63,13 +63,13 @@ from bench.metrics import (
     mesh_correctness,
 )
 from bench.scenes import make_scene
-from core.matching import find_conjugate_points
-from core.mesh import Mesh
-from core.optimize import QuadScorer, TriangleCache
-from core.options import RegistrationOptions
-from core.pipeline import register
-from core.similarity import prepare_images
-from core.warp import piecewise_map
+from pwlreg.core.matching import find_conjugate_points
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import QuadScorer, TriangleCache
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
+from pwlreg.core.similarity import prepare_images
+from pwlreg.core.warp import piecewise_map
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "quality"
 
@@ -1063,9 +1063,9 @@ def mk_threshold_study(seeds: int = 3) -> list[str]:
     both compatible). This is the measurement behind
     :data:`core.baselines.MK_RELATIVE_DECREASE`; affine cameras, 480x360, 0.3 px point noise.
     """
-    from core.baselines import ssd_swap_changes
-    from core.similarity import ssd
-    from core.triangulation import initial_mesh
+    from pwlreg.core.baselines import ssd_swap_changes
+    from pwlreg.core.similarity import ssd
+    from pwlreg.core.triangulation import initial_mesh
 
     lines = []
     for radiometric in ("none", "lighting"):

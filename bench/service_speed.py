@@ -14,7 +14,7 @@ Usage::
 
     python -m bench.service_speed [--jobs 20] [--batch 40] [--workers 2] [--rounds 3]
 
-The services run as ``python -m service.cli serve`` subprocesses on 127.0.0.1 with their data
+The services run as ``python -m pwlreg.service.cli serve`` subprocesses on 127.0.0.1 with their data
 directory in a temporary directory.
 """
 
@@ -39,9 +39,10 @@ import cv2
 import httpx
 import numpy as np
 
-from core.io import load_points, read_image, write_outputs
-from core.options import RegistrationOptions
-from core.pipeline import register
+from pwlreg.core.io import load_points, read_image
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
+from pwlreg.core.results import write_outputs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -99,7 +100,7 @@ def service(workers: int, data_dir: Path, threads: int = 1) -> Iterator[tuple[st
            "PYTHONPATH": os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))}
     log = (data_dir.parent / f"server-{workers}.log").open("wb")
     process = subprocess.Popen(
-        [sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--log-level",
+        [sys.executable, "-m", "pwlreg.service.cli", "serve", "--port", str(port), "--log-level",
          "warning"], cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
@@ -225,7 +226,7 @@ def run_batch(url: str, pid: int, pair: tuple[bytes, bytes, bytes], n: int) -> d
 
 def _core_init() -> None:
     cv2.setNumThreads(1)
-    from core.pipeline import warm_up
+    from pwlreg.core.pipeline import warm_up
 
     warm_up()
 

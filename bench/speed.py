@@ -32,13 +32,13 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from core.io import encode_png
-from core.mesh import Mesh
-from core.optimize import greedy_search, quad_triples
-from core.pipeline import register
-from core.similarity import mutual_information, prepare_images, triangle_statistics
-from core.triangulation import initial_mesh
-from core.warp import warp_image
+from pwlreg.core.io import encode_png
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import greedy_search, quad_triples
+from pwlreg.core.pipeline import register
+from pwlreg.core.similarity import mutual_information, prepare_images, triangle_statistics
+from pwlreg.core.triangulation import initial_mesh
+from pwlreg.core.warp import warp_image
 
 
 def folded_pair(
@@ -251,8 +251,9 @@ def peak_memory(megapixels: float, n_points: int) -> dict:
         del ref, mov
         code = (
             "import json, time\n"
-            "from core.io import load_points, read_image, write_outputs\n"
-            "from core.pipeline import register\n"
+            "from pwlreg.core.io import load_points, read_image\n"
+            "from pwlreg.core.results import write_outputs\n"
+            "from pwlreg.core.pipeline import register\n"
             "t = time.perf_counter()\n"
             f"ref = read_image('{tmp}/ref.png'); mov = read_image('{tmp}/mov.png')\n"
             f"pts = load_points(open('{tmp}/points.json', 'rb').read())\n"

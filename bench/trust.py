@@ -42,11 +42,11 @@ from scipy.spatial import Delaunay
 from bench import middlebury, realdata
 from bench.metrics import endpoint_error
 from bench.scenes import Scene, make_scene, make_unrelated_pair
-from core.errors import RegistrationError
-from core.extent import local_affine_extrapolation
-from core.matching import find_conjugate_points
-from core.options import RegistrationOptions
-from core.pipeline import register, warm_up
+from pwlreg.core.errors import RegistrationError
+from pwlreg.core.extent import local_affine_extrapolation
+from pwlreg.core.matching import find_conjugate_points
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register, warm_up
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "trust"
 SIZE = (640, 480)

@@ -75,9 +75,9 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from core.mesh import Edge, Mesh, edge_key
-from core.optimize import SearchResult, SwapStep, TriangleCache, quad_triples
-from core.similarity import ScoringImages, mutual_information, ssd
+from pwlreg.core.mesh import Edge, Mesh, edge_key
+from pwlreg.core.optimize import SearchResult, SwapStep, TriangleCache, quad_triples
+from pwlreg.core.similarity import ScoringImages, mutual_information, ssd
 
 ProgressFn = Callable[[float], None]
 

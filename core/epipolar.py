@@ -30,7 +30,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from core.errors import InputError
+from pwlreg.core.errors import InputError
 
 #: Fewest pairs each model is estimated from: a minimal sample plus at least two pairs that can
 #: vote against a wrong sample (affine: 4 + 2; projective: 7 + 3, OpenCV needs 8 for polishing).

@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
-from core.reliability import weighted_affine
-from core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.reliability import weighted_affine
+from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
 
 #: Pairs the local model of a border vertex is fitted to.
 NEIGHBOURS = 12

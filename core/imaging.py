@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from core.errors import InputError
+from pwlreg.core.errors import InputError
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16)
 

@@ -1,4 +1,5 @@
-"""The only I/O of :mod:`core`: decoding images with limits, points files, result documents.
+"""I/O of :mod:`core`: decoding images with limits, points files, result documents (the list of
+result files is :mod:`pwlreg.core.results`).
 
 Coordinates everywhere: pixels, x right, y down, (0, 0) the centre of the top-left pixel.
 """
@@ -18,11 +19,11 @@ import cv2
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
-from core.imaging import check_image
+from pwlreg.core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
+from pwlreg.core.imaging import check_image
 
 if TYPE_CHECKING:
-    from core.pipeline import RegistrationResult
+    from pwlreg.core.pipeline import RegistrationResult
 
 # Pillow only parses headers here; the pixel limit is ours.
 Image.MAX_IMAGE_PIXELS = None
@@ -336,24 +337,3 @@ def encode_png(image: np.ndarray, threads: int = 1, level: int = 1) -> bytes:
     idat = [part for piece in deflated for part in _png_chunk(b"IDAT", piece)]
     return b"".join([b"\x89PNG\r\n\x1a\n", *_png_chunk(b"IHDR", header), *idat,
                      *_png_chunk(b"IEND", b"")])
-
-
-def write_outputs(
-    result: RegistrationResult, out_dir: str | os.PathLike, threads: int = 1
-) -> dict[str, Path]:
-    """Write ``mesh.json``, ``registered.png`` and ``convergence.json`` into ``out_dir``.
-
-    ``threads`` is the number of threads compressing the PNG. Returns the paths under the keys
-    ``mesh``, ``registered`` and ``convergence``.
-    """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {
-        "mesh": out / "mesh.json",
-        "registered": out / "registered.png",
-        "convergence": out / "convergence.json",
-    }
-    paths["mesh"].write_text(json.dumps(mesh_document(result)))
-    paths["convergence"].write_text(json.dumps(convergence_document(result), indent=1))
-    paths["registered"].write_bytes(encode_png(result.registered, threads=threads))
-    return paths

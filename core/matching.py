@@ -44,11 +44,11 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
-from core.errors import InputError, NotEnoughPointsError
-from core.imaging import check_image, to_gray8
-from core.options import RegistrationOptions
-from core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
+from pwlreg.core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
+from pwlreg.core.errors import InputError, NotEnoughPointsError
+from pwlreg.core.imaging import check_image, to_gray8
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
 
 #: Pairs needed for a mesh (one triangle).
 MIN_MESH_PAIRS = 3

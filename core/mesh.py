@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from core.raster import fixed_point, orientation, quantize
+from pwlreg.core.raster import fixed_point, orientation, quantize
 
 Edge = tuple[int, int]
 

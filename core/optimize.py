@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.mesh import Edge, Mesh, Quad, edge_key
-from core.similarity import ScoringImages, mutual_information, ncc, triangle_statistics
+from pwlreg.core.mesh import Edge, Mesh, Quad, edge_key
+from pwlreg.core.similarity import ScoringImages, mutual_information, ncc, triangle_statistics
 
 Triple = tuple[int, int, int]
 ProgressFn = Callable[[float], None]

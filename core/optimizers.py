@@ -12,13 +12,13 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from core.baselines import morris_kanade_search, nakatuji_search
-from core.mesh import Mesh
-from core.optimize import ProgressFn, SearchResult, greedy_search
-from core.similarity import ScoringImages, mutual_information, smoothed, triangle_statistics
+from pwlreg.core.baselines import morris_kanade_search, nakatuji_search
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import ProgressFn, SearchResult, greedy_search
+from pwlreg.core.similarity import ScoringImages, mutual_information, smoothed, triangle_statistics
 
 if TYPE_CHECKING:
-    from core.options import RegistrationOptions
+    from pwlreg.core.options import RegistrationOptions
 
 Optimizer = Callable[
     [Mesh, ScoringImages, "RegistrationOptions", "ProgressFn | None"], SearchResult

@@ -10,20 +10,20 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from core.errors import InputError, UnreliableResultError
-from core.extent import frame_vertices
-from core.imaging import check_image
-from core.matching import ConjugatePoints, find_conjugate_points
-from core.optimize import SearchResult
-from core.optimizers import OPTIMIZERS
-from core.options import RegistrationOptions
-from core.quality import SCORING_SIDE, Quality, assess
-from core.similarity import (
+from pwlreg.core.errors import InputError, UnreliableResultError
+from pwlreg.core.extent import frame_vertices
+from pwlreg.core.imaging import check_image
+from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
+from pwlreg.core.optimize import SearchResult
+from pwlreg.core.optimizers import OPTIMIZERS
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.quality import SCORING_SIDE, Quality, assess
+from pwlreg.core.similarity import (
     prepare_images,
     reduced,
 )
-from core.triangulation import TriangulationReport, initial_mesh
-from core.warp import warp_image
+from pwlreg.core.triangulation import TriangulationReport, initial_mesh
+from pwlreg.core.warp import warp_image
 
 Progress = Callable[[str, float], None]
 STAGES = ("matching", "triangulating", "optimizing", "rendering")

@@ -25,8 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.raster import triangle_areas
-from core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.raster import triangle_areas
+from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
 
 #: Shift (pixels of the scoring level) of the peak test.
 SHIFT_PX = 8.0

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core import kernels
+from pwlreg.core import kernels
 
 SUBPIXEL = kernels.SUBPIXEL
 """Vertex coordinates are multiples of ``1 / SUBPIXEL`` pixel."""

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core import kernels
-from core.imaging import max_value, to_gray
+from pwlreg.core import kernels
+from pwlreg.core.imaging import max_value, to_gray
 
 MOMENTS = ("n", "sum_a", "sum_b", "sum_aa", "sum_bb", "sum_ab")
 """Order of the per-triangle moments (a: reference grey level, b: resampled moving level)."""

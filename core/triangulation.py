@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import Delaunay, QhullError
 
-from core.errors import InputError, NotEnoughPointsError
-from core.mesh import Edge, Mesh, edge_key
-from core.raster import quantize, triangle_areas
+from pwlreg.core.errors import InputError, NotEnoughPointsError
+from pwlreg.core.mesh import Edge, Mesh, edge_key
+from pwlreg.core.raster import quantize, triangle_areas
 
 
 @dataclass

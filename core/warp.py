@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core import kernels
-from core.raster import affine_maps, expand, rasterize
+from pwlreg.core import kernels
+from pwlreg.core.raster import affine_maps, expand, rasterize
 
 
 def piecewise_map(

@@ -6,26 +6,27 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from functools import partial
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service import __version__
-from service.api import jobs, system
-from service.auth import load_api_keys
-from service.deps import Services
-from service.logs import job_extra
-from service.maintenance import Janitor
-from service.metrics import CountRefusals, Metrics
-from service.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
-from service.queue import JobQueue, LocalProcessQueue
-from service.schemas import Options
-from service.settings import Settings
-from service.storage import LocalStorage
-from service.store import FINISHED, JobStore
-from service.webhooks import Webhooks, load_secret
-from service.worker import resolve_runner
+from pwlreg.service import __version__
+from pwlreg.service.api import jobs, system
+from pwlreg.service.auth import load_api_keys
+from pwlreg.service.deps import Services
+from pwlreg.service.logs import job_extra
+from pwlreg.service.maintenance import Janitor
+from pwlreg.service.metrics import CountRefusals, Metrics
+from pwlreg.service.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
+from pwlreg.service.queue import JobQueue, LocalProcessQueue
+from pwlreg.service.schemas import Options
+from pwlreg.service.settings import Settings
+from pwlreg.service.storage import LocalStorage
+from pwlreg.service.store import FINISHED, JobStore
+from pwlreg.service.webhooks import Webhooks, load_secret
+from pwlreg.service.worker import resolve_runner
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,8 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         store.create_schema()
         metrics = Metrics()
 
-        webhooks = Webhooks(settings, store, jobs.webhook_body, load_secret(settings))
+        webhooks = Webhooks(settings, store, partial(jobs.webhook_body, storage=storage),
+                            load_secret(settings))
 
         def on_finished(job_id: str) -> None:
             webhooks.wake()

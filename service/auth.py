@@ -19,9 +19,9 @@ from typing import Annotated
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.deps import ServicesDep
-from service.problems import Problem
-from service.settings import Settings
+from pwlreg.service.deps import ServicesDep
+from pwlreg.service.problems import Problem
+from pwlreg.service.settings import Settings
 
 _NAME = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 _KEY = re.compile(r"^[A-Za-z0-9._~+/-]+=*$")  # RFC 6750 b64token: fits a Bearer header

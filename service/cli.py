@@ -19,12 +19,11 @@ from typing import Any, Literal, TextIO
 
 from pydantic import BaseModel, ValidationError
 
-from core.options import RegistrationOptions
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.results import RESULTS
 
 DEFAULT_URL = "http://127.0.0.1:8000"
-RESULT_FILES = {"mesh": "mesh.json", "registered.png": "registered.png",
-                "convergence": "convergence.json"}
-"""Result route of a job -> file name in the output directory."""
+RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
 FINISHED = ("successful", "failed", "dismissed")
 UNRELIABLE_EXIT = 3
 """Exit status of a registration refused as unreliable (``--on-unreliable fail``)."""
@@ -131,9 +130,10 @@ class ProgressBar:
 
 def cmd_register(args: argparse.Namespace) -> int:
     """Register two image files locally and write the three result files."""
-    from core.errors import InputError, UnreliableResultError
-    from core.io import load_points, read_image, write_outputs
-    from core.pipeline import STAGES, register
+    from pwlreg.core.errors import InputError, UnreliableResultError
+    from pwlreg.core.io import load_points, read_image
+    from pwlreg.core.pipeline import STAGES, register
+    from pwlreg.core.results import Sources, write_outputs
 
     bar = ProgressBar() if not args.quiet else None
     spans = {stage: i for i, stage in enumerate(STAGES)}
@@ -148,7 +148,8 @@ def cmd_register(args: argparse.Namespace) -> int:
         moving = read_image(args.moving, field="moving")
         points = load_points(Path(args.points).read_bytes()) if args.points else None
         result = register(reference, moving, points=points, options=options, progress=progress)
-        write_outputs(result, args.out)
+        write_outputs(result, args.out, sources=Sources(reference, moving, Path(args.reference),
+                                                        Path(args.moving)))
     except UnreliableResultError as exc:
         raise CommandError(str(exc), UNRELIABLE_EXIT) from None
     except InputError as exc:
@@ -231,8 +232,12 @@ def cmd_submit(args: argparse.Namespace) -> int:
             reason = error.get("detail") or job.get("message") or job["status"]
             code = UNRELIABLE_EXIT if error.get("type", "").endswith(":unreliable-result") else 1
             raise CommandError(f"job {job['id']} {job['status']}: {reason}", code)
-        for route, filename in RESULT_FILES.items():
-            target = out / filename
+        files_by_route = {fmt.route: fmt.filename for fmt in RESULTS.values()}
+        for link in job.get("links", []):
+            if link.get("rel") != RESULTS_REL:
+                continue
+            route = link["href"].rstrip("/").rsplit("/", 1)[-1]
+            target = out / files_by_route.get(route, route)
             with client.stream("GET", f"{location}/{route}") as result:
                 if result.status_code != 200:
                     result.read()
@@ -281,9 +286,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     """Run the service with uvicorn (API, worker processes, SQLite, local files)."""
     import uvicorn
 
-    from service.app import create_app
-    from service.logs import configure_logging
-    from service.settings import Settings
+    from pwlreg.service.app import create_app
+    from pwlreg.service.logs import configure_logging
+    from pwlreg.service.settings import Settings
 
     overrides: dict[str, Any] = {}
     if args.data_dir is not None:

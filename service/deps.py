@@ -12,15 +12,15 @@ from typing import TYPE_CHECKING, Annotated
 
 from fastapi import Depends, Request
 
-from service.metrics import Metrics
-from service.queue import JobQueue
-from service.settings import Settings
-from service.storage import LocalStorage
-from service.store import JobStore
+from pwlreg.service.metrics import Metrics
+from pwlreg.service.queue import JobQueue
+from pwlreg.service.settings import Settings
+from pwlreg.service.storage import LocalStorage
+from pwlreg.service.store import JobStore
 
 if TYPE_CHECKING:
-    from service.auth import ApiKeys
-    from service.webhooks import Webhooks
+    from pwlreg.service.auth import ApiKeys
+    from pwlreg.service.webhooks import Webhooks
 
 
 @dataclass

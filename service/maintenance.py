@@ -10,12 +10,12 @@ import threading
 import time
 from datetime import timedelta
 
-from service.logs import job_extra
-from service.problems import problem_document
-from service.queue import JobQueue
-from service.settings import Settings
-from service.storage import LocalStorage
-from service.store import JobStore, utcnow
+from pwlreg.service.logs import job_extra
+from pwlreg.service.problems import problem_document
+from pwlreg.service.queue import JobQueue
+from pwlreg.service.settings import Settings
+from pwlreg.service.storage import LocalStorage
+from pwlreg.service.store import JobStore, utcnow
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The OpenAPI document of the service, exported to ``openapi/openapi.json``.
 
-Run ``python -m service.openapi`` after changing the API; a test fails while the file is out of
-date.
+Run ``python -m pwlreg.service.openapi`` after changing the API; a test fails while the file is
+out of date.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from service.app import create_app
-from service.settings import Settings
+from pwlreg.service.app import create_app
+from pwlreg.service.settings import Settings
 
 OPENAPI_PATH = Path(__file__).resolve().parents[1] / "openapi" / "openapi.json"
 """Where the exported document lives in the repository."""

@@ -18,8 +18,8 @@ from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
-from service.schemas import ProblemDetails
+from pwlreg.core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
+from pwlreg.service.schemas import ProblemDetails
 
 log = logging.getLogger(__name__)
 

@@ -23,10 +23,10 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from functools import partial
 
-from service.logs import job_extra
-from service.settings import Settings
-from service.store import JobStatus, JobStore
-from service.worker import init_process, ping, run_in_process
+from pwlreg.service.logs import job_extra
+from pwlreg.service.settings import Settings
+from pwlreg.service.store import JobStatus, JobStore
+from pwlreg.service.worker import init_process, ping, run_in_process
 
 log = logging.getLogger(__name__)
 

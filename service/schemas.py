@@ -11,8 +11,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from core.options import RegistrationOptions
-from service.store import JobStatus
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.service.store import JobStatus
 
 _JOB_ID_EXAMPLE = "3f2c1e0a9b8d4c7e8f6a5b4c3d2e1f00"
 

@@ -170,7 +170,7 @@ class Settings(BaseSettings):
         "message and, for a record about a job, job_id and client).",
     )
     runner: str = Field(
-        "core.pipeline:register",
+        "pwlreg.core.pipeline:register",
         description="Import path (module:function) of the registration function the workers "
         "call. Change it only to wrap core, e.g. in tests.",
     )

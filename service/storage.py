@@ -5,7 +5,7 @@ Layout under the data directory::
     uploads/<random>/            a request being received (moved away or removed when done)
     jobs/<id>/inputs/            reference, moving, points (as uploaded)
     jobs/<id>/work-<owner>/      results being written by one attempt
-    jobs/<id>/results/           mesh.json, registered.png, convergence.json (complete or absent)
+    jobs/<id>/results/           the result files (core.results.RESULTS; complete or absent)
 
 Every visible state is reached by a rename, so a reader never sees half a job or half a result.
 """
@@ -17,31 +17,9 @@ import shutil
 import time
 import uuid
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
 from pathlib import Path
 
-
-@dataclass(frozen=True)
-class ResultFile:
-    """One result of a successful job."""
-
-    name: str
-    filename: str
-    media_type: str
-    title: str
-
-
-RESULTS: dict[str, ResultFile] = {
-    r.name: r
-    for r in (
-        ResultFile("mesh", "mesh.json", "application/json", "Meshes, swaps and matching results"),
-        ResultFile("registered", "registered.png", "image/png", "Moving image registered onto "
-                   "the reference (alpha = inside the mesh)"),
-        ResultFile("convergence", "convergence.json", "application/json",
-                   "Consistency (MI, NMI) per iteration of the optimizer"),
-    )
-}
-"""The results of a job, by the key :func:`core.io.write_outputs` returns."""
+from pwlreg.core.results import RESULTS
 
 IMAGES = ("reference", "moving")
 """Names of the images of a job, stored as uploaded: the API only checks their headers and
@@ -133,6 +111,11 @@ class LocalStorage:
         """Path of the result ``name`` (a key of :data:`RESULTS`), or None if absent."""
         path = self.jobs / job_id / "results" / RESULTS[name].filename
         return path if path.is_file() else None
+
+    def result_names(self, job_id: str) -> list[str]:
+        """Names of the results stored for a job, in the order of :data:`RESULTS`."""
+        folder = self.jobs / job_id / "results"
+        return [name for name, fmt in RESULTS.items() if (folder / fmt.filename).is_file()]
 
     # --- removal -----------------------------------------------------------------------------
 

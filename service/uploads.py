@@ -18,7 +18,7 @@ from python_multipart.exceptions import FormParserError
 from python_multipart.multipart import MultipartParser, parse_options_header
 from starlette.requests import ClientDisconnect
 
-from service.problems import Problem, invalid_input, malformed_request, upload_too_large
+from pwlreg.service.problems import Problem, invalid_input, malformed_request, upload_too_large
 
 OVERHEAD_BYTES = 64 * 1024
 """Allowance for multipart boundaries and part headers in the whole-request size check."""

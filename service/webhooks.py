@@ -38,10 +38,10 @@ from urllib.parse import urlsplit, urlunsplit
 
 import httpx
 
-from service import __version__
-from service.logs import job_extra
-from service.settings import Settings
-from service.store import Job, JobStatus, JobStore, utcnow
+from pwlreg.service import __version__
+from pwlreg.service.logs import job_extra
+from pwlreg.service.settings import Settings
+from pwlreg.service.store import Job, JobStatus, JobStore, utcnow
 
 log = logging.getLogger(__name__)
 
@@ -221,7 +221,7 @@ def parse_callback(
     service.problems.Problem
         422 with ``field`` ``callback`` or ``subscriber[.<member>]``.
     """
-    from service.problems import invalid_input
+    from pwlreg.service.problems import invalid_input
 
     if callback is not None and subscriber is not None:
         raise invalid_input("give either callback or subscriber, not both", "callback")

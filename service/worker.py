@@ -30,15 +30,16 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
-from core.errors import InputError, NotEnoughPointsError, UnreliableResultError
-from core.io import load_points, read_image, write_outputs
-from core.options import RegistrationOptions
-from core.quality import refused
-from service.logs import configure_logging, job_extra
-from service.problems import problem_document
-from service.settings import Settings
-from service.storage import IMAGES, RESULTS, LocalStorage
-from service.store import JobStatus, JobStore
+from pwlreg.core.errors import InputError, NotEnoughPointsError, UnreliableResultError
+from pwlreg.core.io import load_points, read_image
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.quality import refused
+from pwlreg.core.results import Sources, write_outputs
+from pwlreg.service.logs import configure_logging, job_extra
+from pwlreg.service.problems import problem_document
+from pwlreg.service.settings import Settings
+from pwlreg.service.storage import IMAGES, LocalStorage
+from pwlreg.service.store import JobStatus, JobStore
 
 log = logging.getLogger(__name__)
 
@@ -318,10 +319,9 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             result = runner(reference, moving, points=points, options=options, progress=reporter)
             reporter.check()
             work = storage.work_dir(job_id, owner)
-            written = write_outputs(result, work, threads=settings.worker_threads)
-        missing = [key for key in RESULTS if key not in written]
-        if missing:
-            raise RuntimeError(f"write_outputs did not write {', '.join(missing)}")
+            sources = Sources(reference, moving, storage.image_path(job_id, "reference"),
+                              storage.image_path(job_id, "moving"), settings.worker_threads)
+            write_outputs(result, work, sources=sources)
         reporter.beat()  # still ours (not dismissed) before the results become visible?
         storage.publish_results(job_id, work)
         summary = result.summary()
@@ -429,8 +429,8 @@ def init_process(
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
-        if settings.runner == "core.pipeline:register":
-            from core.pipeline import warm_up
+        if settings.runner == "pwlreg.core.pipeline:register":
+            from pwlreg.core.pipeline import warm_up
 
             warm_up()  # compile or load the numba kernels now, not in the first job
     except Exception:  # noqa: BLE001 (reported when a job runs)

@@ -20,15 +20,16 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
-from core.errors import InputError
-from core.io import load_points, probe_image
-from core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
-from core.options import RegistrationOptions
-from core.triangulation import delaunay_triangles
-from service.auth import ClientDep
-from service.deps import Services, ServicesDep
-from service.logs import job_extra
-from service.problems import (
+from pwlreg.core.errors import InputError
+from pwlreg.core.io import load_points, probe_image
+from pwlreg.core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.results import RESULTS, ResultFormat
+from pwlreg.core.triangulation import delaunay_triangles
+from pwlreg.service.auth import ClientDep
+from pwlreg.service.deps import Services, ServicesDep
+from pwlreg.service.logs import job_extra
+from pwlreg.service.problems import (
     Problem,
     from_input_error,
     from_validation_error,
@@ -40,11 +41,11 @@ from service.problems import (
     result_not_ready,
     too_many_jobs,
 )
-from service.schemas import JobList, Link, StatusInfo
-from service.storage import IMAGES, RESULTS
-from service.store import IdempotencyConflict, Job, JobStatus
-from service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
-from service.webhooks import AllowList, parse_callback, webhook_info
+from pwlreg.service.schemas import JobList, Link, StatusInfo
+from pwlreg.service.storage import IMAGES, LocalStorage
+from pwlreg.service.store import IdempotencyConflict, Job, JobStatus
+from pwlreg.service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
+from pwlreg.service.webhooks import AllowList, parse_callback, webhook_info
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +55,6 @@ FORM_PARTS = ("reference", "moving", "points", "options")
 WEBHOOK_PARTS = ("callback", "subscriber")
 """Small form fields (at most :data:`service.uploads.SMALL_PART_BYTES` each)."""
 RESULTS_REL = "http://www.opengis.net/def/rel/ogc/1.0/results"
-RESULT_ROUTES = {"mesh": "mesh", "registered": "registered.png", "convergence": "convergence"}
 _KEY_PATTERN = re.compile(r"^[\x21-\x7e]{1,255}$")
 
 
@@ -71,26 +71,26 @@ def job_href(request: Request, job_id: str) -> str:
 
 def status_info(job: Job, request: Request) -> StatusInfo:
     """The status document of ``job``, with links relative to the server root."""
-    return build_status(job, _root(request))
+    return build_status(job, _root(request), request.app.state.services.storage)
 
 
-def webhook_body(job: Job) -> bytes:
+def webhook_body(job: Job, storage: LocalStorage) -> bytes:
     """The status document of ``job`` as a webhook sends it: the JSON of ``GET
     /v1/jobs/{id}``, with links absolute (the base URL the job was submitted to)."""
     base = (job.callback or {}).get("base_url") or ""
-    return build_status(job, base).model_dump_json().encode()
+    return build_status(job, base, storage).model_dump_json().encode()
 
 
-def build_status(job: Job, root: str) -> StatusInfo:
+def build_status(job: Job, root: str, storage: LocalStorage) -> StatusInfo:
     """The status document of ``job``, with links under ``root`` (a path prefix or a base
-    URL)."""
+    URL), one per stored result."""
     href = f"{root}/v1/jobs/{job.id}"
     links = [Link(href=href, rel="self", type="application/json", title="This job")]
     if job.status == JobStatus.successful:
-        for key, route in RESULT_ROUTES.items():
-            result = RESULTS[key]
+        for name in storage.result_names(job.id):
+            result = RESULTS[name]
             links.append(
-                Link(href=f"{href}/{route}", rel=RESULTS_REL, type=result.media_type,
+                Link(href=f"{href}/{result.route}", rel=RESULTS_REL, type=result.media_type,
                      title=result.title)
             )
     return StatusInfo(
@@ -615,7 +615,7 @@ def _result(services: Services, job_id: str, key: str, client: str | None) -> Fi
             404,
             "result-missing",
             "Result missing",
-            f"the {key} result of job {job_id} is no longer stored",
+            f"job {job_id} has no {key} result (not produced for this job, or no longer stored)",
         )
     result = RESULTS[key]
     return FileResponse(
@@ -626,41 +626,23 @@ def _result(services: Services, job_id: str, key: str, client: str | None) -> Fi
     )
 
 
-@router.get(
-    "/{job_id}/mesh",
-    response_class=FileResponse,
-    summary="Mesh result",
-    description="mesh.json: reference and moving vertices, initial and final triangles, the "
-    "swaps, the parameters and the matching results (pixel coordinates, x right, y down, (0, 0) "
-    "the centre of the top-left pixel).",
-    responses={200: {"content": {"application/json": {}}, "description": "mesh.json"},
-               **problem_responses(401, 404, 409)},
-)
-def get_mesh(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
-    return _result(services, job_id, "mesh", client)
+def _add_result_route(fmt: ResultFormat) -> None:
+    def get_result(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
+        return _result(services, job_id, fmt.name, client)
+
+    for method in ("GET", "HEAD"):
+        router.add_api_route(
+            f"/{{job_id}}/{fmt.route}",
+            get_result,
+            methods=[method],
+            response_class=FileResponse,
+            operation_id=f"{method.lower()}_{fmt.name}",
+            summary=fmt.title if method == "GET" else f"{fmt.title} (headers only)",
+            description=fmt.description,
+            responses={200: {"content": {fmt.media_type: {}}, "description": fmt.filename},
+                       **problem_responses(401, 404, 409)},
+        )
 
 
-@router.get(
-    "/{job_id}/registered.png",
-    response_class=FileResponse,
-    summary="Registered image",
-    description="The moving image warped onto the reference, PNG with alpha (opaque inside the "
-    "mesh).",
-    responses={200: {"content": {"image/png": {}}, "description": "registered.png"},
-               **problem_responses(401, 404, 409)},
-)
-def get_registered(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
-    return _result(services, job_id, "registered", client)
-
-
-@router.get(
-    "/{job_id}/convergence",
-    response_class=FileResponse,
-    summary="Convergence of the optimizer",
-    description="convergence.json: initial and final MI/NMI (bits, dimensionless), every "
-    "iteration with its swap, delta, MI, NMI and elapsed seconds, and why it stopped.",
-    responses={200: {"content": {"application/json": {}}, "description": "convergence.json"},
-               **problem_responses(401, 404, 409)},
-)
-def get_convergence(job_id: str, services: ServicesDep, client: ClientDep) -> FileResponse:
-    return _result(services, job_id, "convergence", client)
+for _fmt in RESULTS.values():
+    _add_result_route(_fmt)

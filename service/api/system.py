@@ -10,12 +10,12 @@ from fastapi import APIRouter, Depends
 from fastapi.responses import PlainTextResponse, Response
 from pydantic import BaseModel
 
-from core.options import RegistrationOptions
-from service.auth import get_client
-from service.deps import ServicesDep
-from service.metrics import CONTENT_TYPE
-from service.problems import Problem, problem_responses
-from service.schemas import Health, OptionInfo, Readiness
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.service.auth import get_client
+from pwlreg.service.deps import ServicesDep
+from pwlreg.service.metrics import CONTENT_TYPE
+from pwlreg.service.problems import Problem, problem_responses
+from pwlreg.service.schemas import Health, OptionInfo, Readiness
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,7 @@ from bench.metrics import (
     mesh_edges,
 )
 from bench.scenes import make_scene
-from core.warp import piecewise_map
+from pwlreg.core.warp import piecewise_map
 
 
 def reference_piecewise_map(ref, mov, tris, shape):

@@ -4,19 +4,19 @@ import numpy as np
 import pytest
 
 from bench.scenes import make_scene
-from core.baselines import (
+from pwlreg.core.baselines import (
     morris_kanade_search,
     quad_inconsistency,
     ssd_swap_changes,
 )
-from core.mesh import Mesh
-from core.optimize import TriangleCache
-from core.optimizers import OPTIMIZERS
-from core.options import RegistrationOptions
-from core.pipeline import register
-from core.raster import label_image
-from core.similarity import prepare_images, ssd, triangle_statistics
-from core.triangulation import initial_mesh
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import TriangleCache
+from pwlreg.core.optimizers import OPTIMIZERS
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
+from pwlreg.core.raster import label_image
+from pwlreg.core.similarity import prepare_images, ssd, triangle_statistics
+from pwlreg.core.triangulation import initial_mesh
 from tests.core.synthetic import book_points, open_book
 
 BASELINES = ("morris-kanade", "nakatuji")

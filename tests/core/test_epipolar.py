@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.epipolar import (
+from pwlreg.core.epipolar import (
     MIN_PAIRS,
     estimate_affine_fundamental,
     estimate_fundamental,
@@ -17,7 +17,7 @@ from core.epipolar import (
     fit_affine_fundamental,
     sampson_distance,
 )
-from core.errors import InputError
+from pwlreg.core.errors import InputError
 
 THRESHOLD = 1.5
 NOISE = 0.3  # px, per coordinate

@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from core.extent import border_positions, frame_vertices, local_affine_extrapolation
-from core.pipeline import register
-from core.similarity import prepare_images
+from pwlreg.core.extent import border_positions, frame_vertices, local_affine_extrapolation
+from pwlreg.core.pipeline import register
+from pwlreg.core.similarity import prepare_images
 from tests.core.synthetic import book_map, open_book, texture
 
 

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
-from core.io import encode_png, load_points, probe_image, read_image
+from pwlreg.core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
+from pwlreg.core.io import encode_png, load_points, probe_image, read_image
 
 
 def test_points_json_and_csv_agree():
@@ -101,8 +101,8 @@ def test_png_round_trip(dtype, channels, threads):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_png_in_many_blocks_and_pieces_of_a_strided_image(monkeypatch, threads):
     # Small blocks and pieces, as a huge image would have them; a view with negative strides.
-    monkeypatch.setattr("core.io._PNG_BLOCK_BYTES", 1000)
-    monkeypatch.setattr("core.io._PNG_PIECE_BYTES", 300 * 1024)
+    monkeypatch.setattr("pwlreg.core.io._PNG_BLOCK_BYTES", 1000)
+    monkeypatch.setattr("pwlreg.core.io._PNG_PIECE_BYTES", 300 * 1024)
     base = np.random.default_rng(1).integers(0, 65535, (700, 900, 4), dtype=np.uint16)
     img = base[::-1, 100:, :]
     data = encode_png(img, threads=threads)

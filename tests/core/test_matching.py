@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from bench import realdata
-from core.epipolar import MIN_PAIRS
-from core.errors import InputError, NotEnoughPointsError
-from core.matching import (
+from pwlreg.core.epipolar import MIN_PAIRS
+from pwlreg.core.errors import InputError, NotEnoughPointsError
+from pwlreg.core.matching import (
     ConjugatePoints,
     detect_corners,
     find_conjugate_points,
@@ -21,7 +21,7 @@ from core.matching import (
     match_sift,
     spread_points,
 )
-from core.options import RegistrationOptions
+from pwlreg.core.options import RegistrationOptions
 
 MAX_INLIER_LOSS = 0.01  # stated rate for client points with 0.3 px noise at a 1.5 px threshold
 
@@ -242,7 +242,7 @@ def client_pairs(n=200, outliers=0.3, seed=0):
     F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
     out = np.zeros(n, bool)
     out[rng.choice(n, int(outliers * n), replace=False)] = True
-    from core.epipolar import sampson_distance
+    from pwlreg.core.epipolar import sampson_distance
 
     for i in np.flatnonzero(out):
         while True:

@@ -4,8 +4,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay
 
-from core.mesh import Mesh
-from core.raster import label_image, quantize
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.raster import label_image, quantize
 
 
 def _random_mesh(seed, n=30, jitter=2.0):

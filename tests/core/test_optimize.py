@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from core.mesh import Mesh
-from core.optimize import QuadScorer, TriangleCache, greedy_search
-from core.raster import quantize
-from core.similarity import prepare_images
-from core.triangulation import initial_mesh
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import QuadScorer, TriangleCache, greedy_search
+from pwlreg.core.raster import quantize
+from pwlreg.core.similarity import prepare_images
+from pwlreg.core.triangulation import initial_mesh
 from tests.core.synthetic import book_points, open_book, texture
 
 
@@ -155,14 +155,14 @@ def test_search_never_cycles():
 
 
 def test_the_cost_table_and_the_option_list_agree():
-    from core.optimize import COSTS
-    from core.options import RegistrationOptions
+    from pwlreg.core.optimize import COSTS
+    from pwlreg.core.options import RegistrationOptions
 
     assert set(RegistrationOptions.model_fields["cost"].annotation.__args__) == set(COSTS)
 
 
 def test_greedy_pyramid_runs_sharp_last_and_reports_on_the_images():
-    from core.pipeline import register
+    from pwlreg.core.pipeline import register
     from tests.core.synthetic import book_points, open_book
 
     reference, moving = open_book(seed=2)
@@ -177,7 +177,7 @@ def test_greedy_pyramid_runs_sharp_last_and_reports_on_the_images():
 
 
 def test_gain_thresholds_follow_the_quad_size_within_bounds():
-    from core.optimize import gain_thresholds
+    from pwlreg.core.optimize import gain_thresholds
 
     n = np.array([62.5, 250.0, 1000.0, 1e6, 1.0])
     t = gain_thresholds(n, 0.01, 250.0)

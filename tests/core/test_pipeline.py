@@ -4,9 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from core.errors import InputError
-from core.io import read_image, write_outputs
-from core.pipeline import STAGES, register
+from pwlreg.core.errors import InputError
+from pwlreg.core.io import read_image
+from pwlreg.core.pipeline import STAGES, register
+from pwlreg.core.results import write_outputs
 from tests.core.synthetic import book_points, open_book, texture
 
 

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from core.errors import UnreliableResultError
-from core.pipeline import register
-from core.quality import peak_scores
-from core.similarity import prepare_images
+from pwlreg.core.errors import UnreliableResultError
+from pwlreg.core.pipeline import register
+from pwlreg.core.quality import peak_scores
+from pwlreg.core.similarity import prepare_images
 from tests.core.synthetic import book_map, open_book, texture
 
 

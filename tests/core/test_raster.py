@@ -3,7 +3,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
-from core.raster import affine_maps, expand, label_image, orientation, quantize, rasterize
+from pwlreg.core.raster import affine_maps, expand, label_image, orientation, quantize, rasterize
 
 
 def _counts(tri_xy, shape):

@@ -4,9 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
-from core.matching import find_conjugate_points
-from core.options import RegistrationOptions
-from core.reliability import neighbour_outliers, uniqueness
+from pwlreg.core.matching import find_conjugate_points
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.reliability import neighbour_outliers, uniqueness
 
 
 def _texture(shape, seed, period=None):
@@ -93,7 +93,7 @@ def test_neighbour_check_needs_enough_points(k):
 
 
 def test_ambiguous_pairs_confirmed_by_their_anchors_are_resolved_but_a_period_off_are_not():
-    from core.reliability import resolved_by_anchors
+    from pwlreg.core.reliability import resolved_by_anchors
 
     rng = np.random.default_rng(3)
     A = np.array([[1.02, 0.03], [-0.02, 0.98]])

@@ -4,10 +4,10 @@ import pytest
 from scipy.ndimage import map_coordinates
 from scipy.spatial import Delaunay
 
-from core.mesh import Mesh
-from core.optimize import TriangleCache, quad_triples
-from core.raster import quantize
-from core.similarity import (
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimize import TriangleCache, quad_triples
+from pwlreg.core.raster import quantize
+from pwlreg.core.similarity import (
     level_range,
     mutual_information,
     ncc,
@@ -15,7 +15,7 @@ from core.similarity import (
     ssd,
     triangle_statistics,
 )
-from core.warp import piecewise_map
+from pwlreg.core.warp import piecewise_map
 from tests.core.synthetic import texture
 
 

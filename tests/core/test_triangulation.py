@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from core.errors import InputError, NotEnoughPointsError
-from core.mesh import Mesh
-from core.triangulation import deduplicate, initial_mesh, repair_patch_reversals
+from pwlreg.core.errors import InputError, NotEnoughPointsError
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.triangulation import deduplicate, initial_mesh, repair_patch_reversals
 
 
 def test_duplicates_removed_in_either_image():

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from core.raster import quantize
-from core.warp import piecewise_map, warp_image
+from pwlreg.core.raster import quantize
+from pwlreg.core.warp import piecewise_map, warp_image
 from tests.core.synthetic import texture
 
 skimage_transform = pytest.importorskip("skimage.transform")

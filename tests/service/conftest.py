@@ -1,7 +1,7 @@
 """Fixtures of the service tests: real uvicorn processes on 127.0.0.1 and a synthetic pair.
 
-Every server runs ``python -m service.cli serve`` in a subprocess on a free port, with its own
-data directory (SQLite database and files) under pytest's tmp dir, and worker processes.
+Every server runs ``python -m pwlreg.service.cli serve`` in a subprocess on a free port, with its
+own data directory (SQLite database and files) under pytest's tmp dir, and worker processes.
 """
 
 from __future__ import annotations

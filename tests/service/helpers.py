@@ -122,7 +122,7 @@ class Server:
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
         log = self.log_path.open("ab")
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
+            [sys.executable, "-m", "pwlreg.service.cli", "serve", "--host", "127.0.0.1",
              "--port", str(self.port), "--log-level", self.log_level],
             cwd=REPO,
             env=env,

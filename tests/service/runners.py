@@ -6,7 +6,7 @@ import os
 import time
 from typing import Any
 
-from core.pipeline import register
+from pwlreg.core.pipeline import register
 
 
 def slow_register(reference: Any, moving: Any, points: Any = None, options: Any = None,

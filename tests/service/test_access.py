@@ -13,9 +13,9 @@ import httpx
 import pytest
 from sqlalchemy import inspect
 
-from service.auth import load_api_keys
-from service.settings import Settings
-from service.store import JobStore
+from pwlreg.service.auth import load_api_keys
+from pwlreg.service.settings import Settings
+from pwlreg.service.store import JobStore
 from tests.service.helpers import (
     Pair,
     Server,

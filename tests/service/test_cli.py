@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from core.options import RegistrationOptions
-from service.cli import build_parser, options_from_args
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.service.cli import build_parser, options_from_args
 from tests.service.helpers import REPO, Pair, Server, free_port, make_pair
 
 RESULT_FILES = {"mesh.json", "registered.png", "convergence.json"}
@@ -20,7 +20,7 @@ RESULT_FILES = {"mesh.json", "registered.png", "convergence.json"}
 
 def pwlreg(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=REPO, env=env,
+    return subprocess.run([sys.executable, "-m", "pwlreg.service.cli", *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout, check=False)
 
 

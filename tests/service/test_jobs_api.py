@@ -14,7 +14,7 @@ import numpy as np
 from PIL import Image
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from core.options import RegistrationOptions
+from pwlreg.core.options import RegistrationOptions
 from tests.service.helpers import (
     Pair,
     Server,
@@ -53,11 +53,16 @@ def test_job_from_upload_to_downloaded_results(server: Server, pair: Pair) -> No
         assert done["message"] and "\n" not in done["message"]
         results = {link["href"].rsplit("/", 1)[1]: link for link in done["links"]
                    if link["rel"] == RESULTS_REL}
-        assert {k: v["type"] for k, v in results.items()} == {
+        assert {k: v["type"] for k, v in results.items()}.items() >= {
             "mesh": "application/json",
             "registered.png": "image/png",
             "convergence": "application/json",
-        }
+        }.items()
+        for link in results.values():  # every result answers HEAD with its headers only
+            head = client.head(link["href"])
+            assert head.status_code == 200 and head.content == b"", link
+            assert head.headers["content-type"].startswith(link["type"])
+            assert int(head.headers["content-length"]) > 0
 
         mesh_response = client.get(results["mesh"]["href"])
         assert mesh_response.status_code == 200

@@ -66,7 +66,8 @@ def test_metrics_per_client_and_json_logs(json_server: Server, pair: Pair) -> No
     mine = [r for r in records if r.get("job_id") == job_id]
     loggers = {r["logger"] for r in mine}
     # The API (accepted, finished) and the worker process (started, successful) said so.
-    assert {"service.api.jobs", "service.worker", "service.app"} <= loggers, mine
+    expected = {"pwlreg.service.api.jobs", "pwlreg.service.worker", "pwlreg.service.app"}
+    assert expected <= loggers, mine
     assert all(r.get("client") == "alice" for r in mine), mine
     assert any(r["logger"] == "uvicorn.access" for r in records)  # uvicorn's records too
     text = "\n".join(lines)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import json
 
-from service.openapi import OPENAPI_PATH, openapi_document
+from pwlreg.service.openapi import OPENAPI_PATH, openapi_document
 
 
 def test_openapi_file_is_up_to_date() -> None:
-    assert OPENAPI_PATH.is_file(), "openapi/openapi.json is missing: run python -m service.openapi"
+    assert OPENAPI_PATH.is_file(), (
+        "openapi/openapi.json is missing: run python -m pwlreg.service.openapi")
     exported = json.loads(OPENAPI_PATH.read_text())
     assert exported == openapi_document(), (
-        "openapi/openapi.json is out of date: run python -m service.openapi"
+        "openapi/openapi.json is out of date: run python -m pwlreg.service.openapi"
     )
 
 
@@ -45,8 +46,8 @@ def test_errors_are_documented_as_problem_documents() -> None:
 
 
 def test_readme_documents_every_option_and_setting() -> None:
-    from core.options import RegistrationOptions
-    from service.settings import Settings
+    from pwlreg.core.options import RegistrationOptions
+    from pwlreg.service.settings import Settings
 
     readme = (OPENAPI_PATH.parents[1] / "README.md").read_text()
     rows = {line.split("|")[1].strip().strip("`"): line.split("|")[3].strip().strip("`")

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-from service.cli import UNRELIABLE_EXIT
+from pwlreg.service.cli import UNRELIABLE_EXIT
 from tests.service.helpers import Pair, Server, make_pair, submit, wait_for
 from tests.service.test_cli import pwlreg
 

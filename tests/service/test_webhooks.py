@@ -19,10 +19,10 @@ from typing import Any
 import httpx
 import pytest
 
-from service.problems import Problem
-from service.settings import Settings
-from service.store import JobStatus, JobStore, utcnow
-from service.webhooks import (
+from pwlreg.service.problems import Problem
+from pwlreg.service.settings import Settings
+from pwlreg.service.store import JobStatus, JobStore, utcnow
+from pwlreg.service.webhooks import (
     SECRET_FILE,
     AllowList,
     TargetError,
@@ -307,7 +307,7 @@ def test_a_pending_delivery_survives_a_restart(tmp_path: Path, receiver: Receive
 
 
 def test_deliveries_go_to_the_address_that_was_checked() -> None:
-    from service.webhooks import pinned_target
+    from pwlreg.service.webhooks import pinned_target
 
     pinned = pinned_target("http://localhost:8123/hook?x=1", AllowList.parse("127.0.0.1"))
     assert pinned.url == "http://127.0.0.1:8123/hook?x=1"

@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 from sqlalchemy import update
 
-from core.options import RegistrationOptions
-from core.pipeline import register
-from service.logs import JsonFormatter
-from service.maintenance import Janitor
-from service.metrics import Metrics
-from service.settings import Settings
-from service.storage import LocalStorage
-from service.store import IdempotencyConflict, JobRow, JobStatus, utcnow
-from service.worker import (
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
+from pwlreg.service.logs import JsonFormatter
+from pwlreg.service.maintenance import Janitor
+from pwlreg.service.metrics import Metrics
+from pwlreg.service.settings import Settings
+from pwlreg.service.storage import LocalStorage
+from pwlreg.service.store import IdempotencyConflict, JobRow, JobStatus, utcnow
+from pwlreg.service.worker import (
     JobDismissed,
     ProgressReporter,
     TimeLimitExceeded,
@@ -330,13 +330,13 @@ def test_stage_timings_from_the_registration() -> None:
 
 
 def test_json_log_records_carry_the_job() -> None:
-    record = logging.LogRecord("service.worker", logging.INFO, __file__, 1, "job %s: %s", ("j1",
-                               'said "hi"\nthen left'), None)
+    record = logging.LogRecord("pwlreg.service.worker", logging.INFO, __file__, 1, "job %s: %s",
+                               ("j1", 'said "hi"\nthen left'), None)
     record.job_id, record.client = "j1", "alice"
     doc = json.loads(JsonFormatter().format(record))
     assert doc["message"] == 'job j1: said "hi"\nthen left'
     assert (doc["level"], doc["logger"], doc["job_id"], doc["client"]) == (
-        "INFO", "service.worker", "j1", "alice")
+        "INFO", "pwlreg.service.worker", "j1", "alice")
     assert doc["time"].endswith("Z")
     plain = logging.LogRecord("x", logging.WARNING, __file__, 1, "no job", None, None)
     assert "job_id" not in json.loads(JsonFormatter().format(plain))

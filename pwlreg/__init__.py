@@ -1,0 +1,115 @@
+"""pwlreg: piecewise-linear image registration with a mesh optimized by mutual information.
+
+The in-process API (the HTTP service in :mod:`pwlreg.service` runs the same function)::
+
+    import pwlreg
+
+    result = pwlreg.register("reference.png", "moving.png", extent="frame")
+    print(result.summary(), result.quality.verdict)
+    pwlreg.write_outputs(result, "out/")          # mesh.json, registered.png, convergence.json
+
+Images are paths, encoded bytes or OpenCV-layout arrays (grey, BGR or BGRA; uint8 or uint16);
+points are ``(reference (N, 2), moving (N, 2))`` arrays in pixels or a points file (JSON or
+CSV, as the service takes). Options are keyword arguments named as in
+:class:`RegistrationOptions` (the same names as the service's ``options``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from pwlreg.core.errors import (
+    InputError,
+    NotEnoughPointsError,
+    RegistrationError,
+    UnreliableResultError,
+)
+from pwlreg.core.io import load_points, read_image
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import STAGES, RegistrationResult
+from pwlreg.core.pipeline import register as _register
+from pwlreg.core.results import write_outputs
+
+try:
+    from importlib.metadata import PackageNotFoundError, version
+
+    __version__ = version("pwlreg")
+except PackageNotFoundError:  # a source tree that is not installed
+    __version__ = "0.1.0"
+
+__all__ = [
+    "STAGES",
+    "InputError",
+    "NotEnoughPointsError",
+    "RegistrationError",
+    "RegistrationOptions",
+    "RegistrationResult",
+    "UnreliableResultError",
+    "load_points",
+    "read_image",
+    "register",
+    "write_outputs",
+]
+
+ImageLike = np.ndarray | bytes | str | os.PathLike
+PointsLike = tuple[np.ndarray, np.ndarray] | bytes | str | os.PathLike
+
+
+def _image(value: ImageLike, field: str) -> np.ndarray:
+    return value if isinstance(value, np.ndarray) else read_image(value, field=field)
+
+
+def _points(value: PointsLike | None) -> tuple[np.ndarray, np.ndarray] | None:
+    if value is None or isinstance(value, tuple):
+        return value
+    if isinstance(value, bytes):
+        return load_points(value)
+    with open(value, "rb") as handle:
+        return load_points(handle.read())
+
+
+def register(
+    reference: ImageLike,
+    moving: ImageLike,
+    points: PointsLike | None = None,
+    *,
+    options: RegistrationOptions | Mapping[str, Any] | None = None,
+    progress: Callable[[str, float], None] | None = None,
+    **option_values: Any,
+) -> RegistrationResult:
+    """Register ``moving`` onto ``reference``.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, bytes or path
+        The images: arrays in OpenCV layout, encoded files, or paths to them.
+    points : (ndarray, ndarray), bytes or path, optional
+        Conjugate points ``(reference (N, 2), moving (N, 2))`` in pixels, or a points file.
+        Without them the automatic matcher finds them.
+    options : RegistrationOptions or mapping, optional
+        All options at once; ``option_values`` override single ones (``optimizer="greedy"``).
+    progress : callable, optional
+        ``progress(stage, fraction)``; raising from it stops the registration.
+
+    Returns
+    -------
+    RegistrationResult
+        Vertices, initial and final triangles, the search history, the registered image, the
+        quality verdict and timings; :func:`write_outputs` writes the service's result files.
+
+    Raises
+    ------
+    InputError
+        Unreadable images or points, invalid options, or too few consistent conjugate points.
+    UnreliableResultError
+        The verdict is ``unreliable`` and ``on_unreliable="fail"``.
+    """
+    merged = (options.model_dump(exclude_unset=True) if isinstance(options, RegistrationOptions)
+              else dict(options or {}))
+    merged.update(option_values)
+    return _register(_image(reference, "reference"), _image(moving, "moving"),
+                     points=_points(points), options=merged, progress=progress)
