@@ -15,7 +15,7 @@ from fastapi import Depends, Request
 from pwlreg.service.metrics import Metrics
 from pwlreg.service.queue import JobQueue
 from pwlreg.service.settings import Settings
-from pwlreg.service.storage import LocalStorage
+from pwlreg.service.storage import Storage
 from pwlreg.service.store import JobStore
 
 if TYPE_CHECKING:
@@ -29,7 +29,7 @@ class Services:
 
     settings: Settings
     store: JobStore
-    storage: LocalStorage
+    storage: Storage
     queue: JobQueue
     metrics: Metrics
     api_keys: ApiKeys

@@ -1,6 +1,7 @@
 """Periodic maintenance: requeue jobs whose worker died, delete expired jobs and leftovers.
 
-Kept apart from the queue: with a Celery queue the same pass would run as a beat task.
+Kept apart from the queue, and run by the API process in both modes: with Celery workers too,
+a job whose worker died goes back to ``accepted`` here and the queue sends it again.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from pwlreg.service.logs import job_extra
 from pwlreg.service.problems import problem_document
 from pwlreg.service.queue import JobQueue
 from pwlreg.service.settings import Settings
-from pwlreg.service.storage import LocalStorage
+from pwlreg.service.storage import Storage
 from pwlreg.service.store import JobStore, utcnow
 
 log = logging.getLogger(__name__)
@@ -35,13 +36,13 @@ class Janitor:
     ----------
     settings : Settings
     store : JobStore
-    storage : LocalStorage
+    storage : Storage
     queue : JobQueue
         Told about the jobs it puts back to ``accepted``.
     """
 
     def __init__(
-        self, settings: Settings, store: JobStore, storage: LocalStorage, queue: JobQueue
+        self, settings: Settings, store: JobStore, storage: Storage, queue: JobQueue
     ) -> None:
         self.settings = settings
         self.store = store

@@ -5,9 +5,9 @@ in-memory structure holds it. The queue only decides when a worker runs which jo
 lost with its process loses no job; :meth:`JobQueue.start` rebuilds it from the store.
 
 :class:`JobQueue` is the interface the API uses. :class:`LocalProcessQueue` runs the jobs in a
-pool of local worker processes (the work is CPU-bound); a Celery implementation (Redis broker,
-PostgreSQL store) can sit behind the same interface: ``enqueue`` would send the task, the Celery
-worker would call :func:`service.worker.run_job`.
+pool of local worker processes (the work is CPU-bound, embedded mode); :class:`CeleryQueue` hands
+them to Celery workers through a broker (scale-out mode), which call the same
+:func:`service.worker.run_job`.
 """
 
 from __future__ import annotations
@@ -21,11 +21,12 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
+from datetime import timedelta
 from functools import partial
 
 from pwlreg.service.logs import job_extra
 from pwlreg.service.settings import Settings
-from pwlreg.service.store import JobStatus, JobStore
+from pwlreg.service.store import FINISHED, JobStatus, JobStore, utcnow
 from pwlreg.service.worker import init_process, ping, run_in_process
 
 log = logging.getLogger(__name__)
@@ -227,3 +228,133 @@ class LocalProcessQueue(JobQueue):
             self._inflight.clear()
         self._executor = self._new_executor()
         log.warning("worker pool replaced")
+
+
+class CeleryQueue(JobQueue):
+    """Accepted jobs handed to Celery workers through a broker (``pwlreg worker``).
+
+    A dispatcher thread sends one message per accepted job that has none: new jobs, jobs given
+    back by a stopping worker or requeued after a worker died (their rows go back to
+    ``accepted`` undispatched), and jobs whose message was sent longer ago than the broker's
+    visibility timeout (a broker restarted without its data loses its messages). It marks the
+    row before it sends, so that several API processes send each job once; a message that
+    cannot be sent is unmarked and sent at a later pass. It wakes on :meth:`enqueue` and every
+    ``poll_interval`` seconds. A duplicate message is harmless: the worker's claim refuses a
+    job that is not waiting.
+
+    The same thread watches the jobs it dispatched (and, after a start, those still
+    unfinished) and calls ``on_finished`` when one ends, as the local pool does.
+
+    Parameters
+    ----------
+    settings : Settings
+        ``broker_url`` and ``broker_queue`` name the broker and the queue.
+    store : JobStore
+    on_finished : callable, optional
+        Called with the job id once a watched job has ended.
+    poll_interval : float
+        Seconds between two passes when nothing wakes the dispatcher.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: JobStore,
+        on_finished: Callable[[str], None] | None = None,
+        poll_interval: float = 1.0,
+    ) -> None:
+        # Celery is an optional dependency (the extra 'scaleout'): imported in this mode only.
+        from pwlreg.service.celery_app import TASK, make_celery, visibility_timeout
+
+        self.settings = settings
+        self.store = store
+        self.on_finished = on_finished
+        self.poll_interval = poll_interval
+        self.app = make_celery(settings)
+        self._task = TASK
+        self._resend_after = timedelta(seconds=visibility_timeout(settings))
+        self._wake = threading.Event()
+        self._watching: set[str] = set()
+        self._thread: threading.Thread | None = None
+        self._stopping = False
+        self._broker_down = False
+
+    def start(self) -> None:
+        self._watching.update(self.store.unfinished_ids())
+        self._thread = threading.Thread(target=self._run, name="job-dispatcher", daemon=True)
+        self._thread.start()
+
+    def enqueue(self, job_id: str) -> None:
+        self._wake.set()
+
+    def is_ready(self) -> bool:
+        if self._thread is None or not self._thread.is_alive() or self._stopping:
+            return False
+        try:
+            with self.app.connection_for_write() as connection:
+                connection.ensure_connection(max_retries=1, interval_start=0, timeout=2.0)
+        except Exception as exc:  # noqa: BLE001 (any broker failure means not ready)
+            log.warning("broker unreachable: %s", exc)
+            return False
+        return True
+
+    def depth(self) -> int:
+        return self.store.count_by_status()[JobStatus.accepted]
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stopping = True
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.app.close()
+
+    def _run(self) -> None:
+        while not self._stopping:
+            try:
+                self._dispatch()
+                self._watch()
+            except Exception:  # noqa: BLE001 (the dispatcher must survive a hiccup)
+                log.exception("dispatcher pass failed; retrying")
+            self._wake.wait(self.poll_interval)
+            self._wake.clear()
+
+    def _dispatch(self) -> None:
+        while not self._stopping:
+            sent_before = utcnow() - self._resend_after
+            batch = self.store.undispatched(100, sent_before)
+            for job_id in batch:
+                if not self.store.mark_dispatched(job_id, sent_before):
+                    continue  # dispatched by another API process, or no longer accepted
+                try:
+                    self.app.send_task(self._task, args=[job_id],
+                                       queue=self.settings.broker_queue)
+                except Exception as exc:  # noqa: BLE001 (sent again at the next pass)
+                    self.store.unmark_dispatched(job_id)
+                    if not self._broker_down:
+                        log.warning("job %s: not sent to the broker (%s); retrying every "
+                                    "%g s", job_id, exc, self.poll_interval,
+                                    extra=job_extra(job_id))
+                    self._broker_down = True
+                    return
+                if self._broker_down:
+                    log.warning("broker reachable again; sending the waiting jobs")
+                    self._broker_down = False
+                self._watching.add(job_id)
+            if len(batch) < 100:
+                return
+
+    def _watch(self) -> None:
+        if not self._watching:
+            return
+        statuses = self.store.statuses(list(self._watching))
+        for job_id in list(self._watching):
+            status = statuses.get(job_id)
+            if status is not None and status not in FINISHED:
+                continue
+            self._watching.discard(job_id)
+            if status is not None and self.on_finished is not None:
+                try:
+                    self.on_finished(job_id)
+                except Exception:  # noqa: BLE001
+                    log.exception("on_finished callback failed for job %s", job_id,
+                                  extra=job_extra(job_id))

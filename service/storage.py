@@ -1,4 +1,10 @@
-"""Artifact storage on the local disk: uploaded inputs and results of every job.
+"""Artifact storage: the uploaded inputs and the results of every job.
+
+:class:`Storage` is what the API, the workers and the maintenance pass use; :class:`LocalStorage`
+keeps the files in a directory, which in scale-out mode is a volume shared by the API and every
+worker (nothing of a job lives only on one worker's disk). An object store can implement the same
+interface: its paths are then those of a local cache (inputs fetched before a worker reads them,
+results uploaded by :meth:`Storage.publish_results` and fetched when served).
 
 Layout under the data directory::
 
@@ -16,18 +22,92 @@ import os
 import shutil
 import time
 import uuid
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from pwlreg.core.results import RESULTS
+from pwlreg.service.settings import Settings
 
 IMAGES = ("reference", "moving")
 """Names of the images of a job, stored as uploaded: the API only checks their headers and
 structure, the worker decodes them (decoding is CPU work, and the worker pool is what scales)."""
 
 
-class LocalStorage:
-    """Job files under one root directory.
+class Storage(ABC):
+    """Where the files of the jobs are kept.
+
+    Paths returned are local files: a reader never sees half a job or half a result, and a
+    result path is either complete or absent.
+    """
+
+    @abstractmethod
+    def prepare(self) -> None:
+        """Make the storage usable; raise OSError if it is not writable."""
+
+    @abstractmethod
+    def is_writable(self) -> bool:
+        """True if new files can be stored."""
+
+    @abstractmethod
+    def new_staging(self) -> Path:
+        """A new empty local directory for the files of one request."""
+
+    @abstractmethod
+    def commit_inputs(self, staging: Path, job_id: str) -> None:
+        """Make a staging directory the inputs of ``job_id``, durably, before the job row is
+        inserted."""
+
+    @abstractmethod
+    def discard(self, path: Path) -> None:
+        """Remove a staging directory, ignoring a missing one."""
+
+    @abstractmethod
+    def image_path(self, job_id: str, name: str) -> Path:
+        """Local path of the image ``name`` (one of :data:`IMAGES`) of ``job_id``."""
+
+    @abstractmethod
+    def points_path(self, job_id: str) -> Path:
+        """Local path of the points file of ``job_id``."""
+
+    @abstractmethod
+    def work_dir(self, job_id: str, owner: str) -> Path:
+        """A fresh local directory for the results of one attempt."""
+
+    @abstractmethod
+    def publish_results(self, job_id: str, work_dir: Path) -> bool:
+        """Make the results of ``work_dir`` visible at once; False if another attempt
+        published first or the job's files were removed."""
+
+    @abstractmethod
+    def discard_attempts(self, job_id: str) -> None:
+        """Remove the work directories of attempts of ``job_id`` that did not publish."""
+
+    @abstractmethod
+    def result_path(self, job_id: str, name: str) -> Path | None:
+        """Local path of the result ``name`` (a key of :data:`RESULTS`), or None if absent."""
+
+    @abstractmethod
+    def result_names(self, job_id: str) -> list[str]:
+        """Names of the results stored for a job, in the order of :data:`RESULTS`."""
+
+    @abstractmethod
+    def remove(self, job_id: str) -> None:
+        """Remove every file of ``job_id``."""
+
+    @abstractmethod
+    def sweep(self, is_known: Callable[[Iterable[str]], set[str]], older_than: float) -> int:
+        """Remove leftovers older than ``older_than`` seconds (interrupted uploads, files of
+        jobs without a row); returns how many were removed."""
+
+
+def open_storage(settings: Settings) -> Storage:
+    """The storage the settings name: the job files under ``settings.data_dir``."""
+    return LocalStorage(settings.data_dir)
+
+
+class LocalStorage(Storage):
+    """Job files under one root directory (a local disk or a volume shared by every process).
 
     Parameters
     ----------
@@ -106,6 +186,11 @@ class LocalStorage:
             shutil.rmtree(work_dir, ignore_errors=True)
             return False
         return True
+
+    def discard_attempts(self, job_id: str) -> None:
+        for path in (self.jobs / job_id).glob("work-*"):
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
 
     def result_path(self, job_id: str, name: str) -> Path | None:
         """Path of the result ``name`` (a key of :data:`RESULTS`), or None if absent."""

@@ -2,8 +2,11 @@
 
 A job row holds the status, the progress, the attempts and the lease of the worker running it.
 Every transition is a single conditional ``UPDATE`` (``... WHERE status = 'accepted'``), so that
-several processes (the API, the workers, later other machines) never step on each other: the
-first writer wins and the others see ``rowcount == 0``.
+several processes (the API, the workers, other machines) never step on each other: the first
+writer wins and the others see ``rowcount == 0``.
+
+The same code runs on SQLite (embedded mode) and PostgreSQL (scale-out); the schema is created
+and upgraded by the Alembic revisions of :mod:`pwlreg.service.migrations`.
 """
 
 from __future__ import annotations
@@ -13,8 +16,14 @@ import uuid
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 from typing import Any
 
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from alembic.util import CommandError
 from sqlalchemy import (
     JSON,
     Boolean,
@@ -24,18 +33,26 @@ from sqlalchemy import (
     Integer,
     String,
     Text,
+    and_,
     create_engine,
     event,
     func,
-    inspect,
+    or_,
     select,
     text,
     update,
 )
 from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 from sqlalchemy.types import TypeDecorator
+
+MIGRATIONS = Path(__file__).with_name("migrations")
+"""The Alembic environment and revisions of the job table."""
+
+SCHEMA_LOCK = 0x70776C72
+"""Key of the PostgreSQL advisory lock that serializes the schema upgrades of API processes
+starting together (replicas)."""
 
 
 class JobStatus(enum.StrEnum):
@@ -104,9 +121,12 @@ class JobRow(Base):
     updated: Mapped[datetime] = mapped_column(UTCDateTime)
     started: Mapped[datetime | None] = mapped_column(UTCDateTime)
     finished: Mapped[datetime | None] = mapped_column(UTCDateTime)
-    # Webhook (all nullable: added to older databases by create_schema). ``callback`` holds the
-    # target URLs and the server's base URL; the other columns are the outbox of the delivery
-    # of the job's last end (``webhook_event``: the status it announces).
+    dispatched: Mapped[datetime | None] = mapped_column(UTCDateTime)
+    """When the job was last handed to the broker (scale-out mode); None while accepted and not
+    yet sent, or since it went back to ``accepted``."""
+    # Webhook. ``callback`` holds the target URLs and the server's base URL; the other columns
+    # are the outbox of the delivery of the job's last end (``webhook_event``: the status it
+    # announces).
     callback: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     webhook_event: Mapped[str | None] = mapped_column(String(16))
     webhook_state: Mapped[str | None] = mapped_column(String(16))
@@ -157,6 +177,7 @@ class Job:
     webhook_error: str | None = None
     webhook_delivery: str | None = None
     timings: dict[str, float] | None = None
+    dispatched: datetime | None = None
 
     @classmethod
     def from_row(cls, row: JobRow) -> Job:
@@ -180,14 +201,21 @@ class IdempotencyConflict(Exception):
         self.job = job
 
 
+class SchemaError(RuntimeError):
+    """The database's schema cannot be brought to the revision this release needs."""
+
+
+class SchemaBehind(SchemaError):
+    """The database's schema is at an older revision (or has none yet): the API upgrades it."""
+
+
 def _sqlite_pragmas(dbapi_connection: Any, connection_record: Any) -> None:
     cursor = dbapi_connection.cursor()
     # WAL lets readers and one writer work together across processes; the busy timeout makes
-    # writers wait instead of failing. NORMAL sync: a commit survives the crash of any process
-    # but, after a power cut, the last updates (progress, a finished status) may be lost; a job
-    # that comes back running is then run again. The insert of a new job syncs fully (create).
+    # writers wait instead of failing. FULL sync: every commit (an accepted job above all) is
+    # on disk before it returns, as a PostgreSQL commit is.
     cursor.execute("PRAGMA journal_mode=WAL")
-    cursor.execute("PRAGMA synchronous=NORMAL")
+    cursor.execute("PRAGMA synchronous=FULL")
     cursor.execute("PRAGMA busy_timeout=30000")
     cursor.close()
 
@@ -201,13 +229,22 @@ def make_engine(url: str) -> Engine:
     return create_engine(url, pool_pre_ping=True)
 
 
+def alembic_config(connection: Any = None) -> Config:
+    """The Alembic configuration of the job table, running over ``connection`` if given (else
+    over the database of the ``PWLREG_*`` settings, for the ``alembic`` command)."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS))
+    config.attributes["connection"] = connection
+    return config
+
+
 class JobStore:
     """Create, read and move jobs through their life cycle.
 
     Parameters
     ----------
     engine : sqlalchemy.engine.Engine
-        Engine of the job database; tables are created by :meth:`create_schema`.
+        Engine of the job database; the schema is made by :meth:`create_schema`.
     """
 
     def __init__(self, engine: Engine) -> None:
@@ -220,19 +257,75 @@ class JobStore:
         return cls(make_engine(url))
 
     def create_schema(self) -> None:
-        """Create the tables if they do not exist, and add the nullable columns (``quality``,
-        ``owner``) and the indexes a database made by an earlier version lacks."""
-        Base.metadata.create_all(self.engine)
-        present = {c["name"] for c in inspect(self.engine).get_columns(JobRow.__tablename__)}
-        with self.engine.begin() as conn:
-            for column in JobRow.__table__.columns:
-                if column.name not in present and column.nullable:
-                    kind = column.type.compile(dialect=self.engine.dialect)
-                    conn.execute(text(f"ALTER TABLE jobs ADD COLUMN {column.name} {kind}"))
-        indexes = {i["name"] for i in inspect(self.engine).get_indexes(JobRow.__tablename__)}
-        for index in JobRow.__table__.indexes:
-            if index.name not in indexes:
-                index.create(self.engine, checkfirst=True)
+        """Bring the database to the newest schema revision: create the table in an empty
+        database, upgrade one made by an earlier release (also one made before the schema had
+        revisions).
+
+        Raises
+        ------
+        SchemaError
+            The database is at a revision this release does not know (it was upgraded by a
+            newer release), or an upgrade step failed; nothing was changed.
+        """
+        with self.engine.begin() as connection:
+            if connection.dialect.name == "postgresql":
+                # Processes starting together upgrade one after the other (released at commit).
+                connection.execute(text("SELECT pg_advisory_xact_lock(:key)"),
+                                   {"key": SCHEMA_LOCK})
+            config = alembic_config(connection)
+            head = ScriptDirectory.from_config(config).get_current_head()
+            current = MigrationContext.configure(connection).get_current_revision()
+            try:
+                command.upgrade(config, "head")
+            except CommandError as exc:
+                raise SchemaError(
+                    f"the job database {self._where()} is at schema revision {current!r}, "
+                    f"which this release of pwlreg does not know (its newest is {head!r}): it "
+                    "was upgraded by a newer release; run that release, or restore a backup "
+                    f"made before the upgrade ({exc})"
+                ) from None
+            except Exception as exc:
+                raise SchemaError(
+                    f"the job database {self._where()} could not be upgraded from schema "
+                    f"revision {current!r} to {head!r}: {type(exc).__name__}: {exc}"
+                ) from exc
+
+    def schema_revision(self) -> tuple[str | None, str | None]:
+        """The database's schema revision and the newest this release knows."""
+        with self.engine.connect() as connection:
+            current = MigrationContext.configure(connection).get_current_revision()
+        return current, ScriptDirectory.from_config(alembic_config()).get_current_head()
+
+    def check_schema(self) -> None:
+        """Raise unless the database is at the newest revision, for processes that use the
+        store but leave upgrades to the API.
+
+        Raises
+        ------
+        SchemaBehind
+            The database has no schema yet, or an older revision.
+        SchemaError
+            The database is at a revision this release does not know (a newer release's).
+        """
+        current, head = self.schema_revision()
+        if current == head:
+            return
+        script = ScriptDirectory.from_config(alembic_config())
+        known = {rev.revision for rev in script.walk_revisions()}
+        if current is None or current in known:
+            raise SchemaBehind(
+                f"the job database {self._where()} is at schema revision {current!r}, this "
+                f"release of pwlreg needs {head!r}: the API of this release upgrades it when it "
+                "starts"
+            )
+        raise SchemaError(
+            f"the job database {self._where()} is at schema revision {current!r}, which this "
+            f"release of pwlreg does not know (its newest is {head!r}): it was upgraded by a "
+            "newer release; run that release"
+        )
+
+    def _where(self) -> str:
+        return self.engine.url.render_as_string(hide_password=True)
 
     def dispose(self) -> None:
         """Close the connections of the engine."""
@@ -316,7 +409,8 @@ class JobStore:
             updated=now,
         )
         try:
-            self._insert_durably(row)
+            with self._sessions.begin() as session:
+                session.add(row)
         except IntegrityError:
             # Two requests with the same key raced; the other one won.
             existing = (
@@ -326,24 +420,6 @@ class JobStore:
                 raise
             return self._replay(existing, request_hash), False
         return Job.from_row(row), True
-
-    def _insert_durably(self, row: JobRow) -> None:
-        """Insert ``row`` and sync the commit to disk (SQLite: ``synchronous=FULL`` for this
-        transaction only), so that an accepted job survives even a power cut."""
-        sqlite = self.engine.dialect.name == "sqlite"
-        with self.engine.connect() as connection:
-            if sqlite:
-                connection.exec_driver_sql("PRAGMA synchronous=FULL")
-                connection.commit()
-            try:
-                with Session(bind=connection, expire_on_commit=False) as session:
-                    session.add(row)
-                    session.commit()
-            finally:
-                if sqlite:
-                    connection.rollback()
-                    connection.exec_driver_sql("PRAGMA synchronous=NORMAL")
-                    connection.commit()
 
     @staticmethod
     def _replay(existing: Job, request_hash: str | None) -> Job:
@@ -426,14 +502,82 @@ class JobStore:
         with self._sessions() as session:
             return list(session.scalars(query).all())
 
+    def unfinished_ids(self) -> list[str]:
+        """Ids of the jobs accepted or running."""
+        query = select(JobRow.id).where(
+            JobRow.status.in_([JobStatus.accepted.value, JobStatus.running.value])
+        )
+        with self._sessions() as session:
+            return list(session.scalars(query).all())
+
+    def statuses(self, job_ids: Sequence[str]) -> dict[str, JobStatus]:
+        """The status of each of ``job_ids`` that has a row."""
+        found: dict[str, JobStatus] = {}
+        ids = list(job_ids)
+        with self._sessions() as session:
+            for i in range(0, len(ids), 500):
+                rows = session.execute(
+                    select(JobRow.id, JobRow.status).where(JobRow.id.in_(ids[i:i + 500]))
+                ).all()
+                found.update((job_id, JobStatus(status)) for job_id, status in rows)
+        return found
+
+    # --- dispatch to a broker (scale-out mode, see service.queue.CeleryQueue) -------------------
+
+    def undispatched(self, limit: int, sent_before: datetime) -> list[str]:
+        """Ids of the oldest accepted jobs never handed to the broker, or last handed before
+        ``sent_before`` (their message may be lost)."""
+        query = (
+            select(JobRow.id)
+            .where(
+                JobRow.status == JobStatus.accepted.value,
+                or_(JobRow.dispatched.is_(None), JobRow.dispatched < sent_before),
+            )
+            .order_by(JobRow.created, JobRow.id)
+            .limit(limit)
+        )
+        with self._sessions() as session:
+            return list(session.scalars(query).all())
+
+    def mark_dispatched(self, job_id: str, sent_before: datetime) -> bool:
+        """Record that a message for the accepted job ``job_id`` is being sent now; False if
+        the job is not accepted or another process sent one after ``sent_before``."""
+        return self._update(
+            update(JobRow)
+            .where(
+                JobRow.id == job_id,
+                JobRow.status == JobStatus.accepted.value,
+                or_(JobRow.dispatched.is_(None), JobRow.dispatched < sent_before),
+            )
+            .values(dispatched=utcnow())
+        ) == 1
+
+    def unmark_dispatched(self, job_id: str) -> None:
+        """Forget a dispatch whose message could not be sent (it is sent again)."""
+        self._update(
+            update(JobRow)
+            .where(JobRow.id == job_id, JobRow.status == JobStatus.accepted.value)
+            .values(dispatched=None)
+        )
+
     # --- transitions by a worker --------------------------------------------------------------
 
     def claim(self, job_id: str, owner: str, lease_seconds: float) -> Job | None:
-        """Move an accepted job to running under ``owner``'s lease; None if it is not accepted."""
+        """Move a job to running under ``owner``'s lease, counting one more attempt; None if it
+        is neither accepted nor running under an expired lease with attempts left (a worker
+        that died; the broker delivers its job again)."""
         now = utcnow()
+        takeable = or_(
+            JobRow.status == JobStatus.accepted.value,
+            and_(
+                JobRow.status == JobStatus.running.value,
+                JobRow.lease_expires < now,
+                JobRow.attempts < JobRow.max_attempts,
+            ),
+        )
         n = self._update(
             update(JobRow)
-            .where(JobRow.id == job_id, JobRow.status == JobStatus.accepted.value)
+            .where(JobRow.id == job_id, takeable)
             .values(
                 status=JobStatus.running.value,
                 attempts=JobRow.attempts + 1,
@@ -509,6 +653,7 @@ class JobStore:
             "progress": 0.0,
             "message": message,
             "updated": utcnow(),
+            "dispatched": None,
         }
         return self._update_owned(job_id, owner, values)
 
@@ -592,6 +737,7 @@ class JobStore:
                         updated=now,
                         lease_owner=None,
                         lease_expires=None,
+                        dispatched=None,
                     )
                 )
                 if n:

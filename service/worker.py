@@ -1,11 +1,12 @@
 """The worker: runs one job in a worker process, from its stored inputs to its stored results.
 
-:func:`run_job` claims the job (accepted -> running, under a lease), loads the inputs, calls the
-registration function (``core.pipeline.register`` unless the settings name another) and stores
-the results. While it runs, a heartbeat thread writes the stage and progress to the job row,
-renews the lease and notices a dismissal; the progress callback passed to the registration
-raises when the job was dismissed, ran past its time limit or the service is shutting down,
-which stops the registration at its next progress report.
+The same code runs in the processes of the embedded pool (:mod:`service.queue`) and of a Celery
+worker (:mod:`service.celery_app`). :func:`run_job` claims the job (accepted -> running, under a
+lease), loads the inputs, calls the registration function (``core.pipeline.register`` unless the
+settings name another) and stores the results. While it runs, a heartbeat thread writes the
+stage and progress to the job row, renews the lease and notices a dismissal; the progress
+callback passed to the registration raises when the job was dismissed, ran past its time limit
+or the service is shutting down, which stops the registration at its next progress report.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from __future__ import annotations
 import importlib
 import logging
 import os
-import shutil
 import signal
 import socket
 import threading
@@ -38,7 +38,7 @@ from pwlreg.core.results import Sources, write_outputs
 from pwlreg.service.logs import configure_logging, job_extra
 from pwlreg.service.problems import problem_document
 from pwlreg.service.settings import Settings
-from pwlreg.service.storage import IMAGES, LocalStorage
+from pwlreg.service.storage import IMAGES, Storage, open_storage
 from pwlreg.service.store import JobStatus, JobStore
 
 log = logging.getLogger(__name__)
@@ -127,7 +127,7 @@ class WorkerContext:
     ----------
     settings : Settings
     store : JobStore
-    storage : LocalStorage
+    storage : Storage
     runner : callable, optional
         The registration function; None means "import ``settings.runner`` on first use".
     stop_event : threading.Event-like, optional
@@ -138,7 +138,7 @@ class WorkerContext:
 
     settings: Settings
     store: JobStore
-    storage: LocalStorage
+    storage: Storage
     runner: Runner | None = None
     stop_event: Any = None
     abort: Callable[[], None] = field(default=lambda: os._exit(70))
@@ -150,7 +150,7 @@ class WorkerContext:
         return cls(
             settings=settings,
             store=JobStore.from_url(settings.resolved_database_url),
-            storage=LocalStorage(settings.data_dir),
+            storage=open_storage(settings),
             runner=runner,
             stop_event=stop_event,
         )
@@ -289,9 +289,9 @@ def _owner() -> str:
 def run_job(job_id: str, context: WorkerContext) -> str:
     """Run one job to its end and return its final status (or ``"skipped"``).
 
-    A job that is not ``accepted`` any more (dismissed meanwhile, or claimed by another worker)
-    is skipped. Errors about the input end the job as failed with a readable message; nothing
-    raised by the registration escapes this function.
+    A job that cannot be claimed (dismissed meanwhile, finished, or running under another
+    worker's live lease) is skipped. Errors about the input end the job as failed with a
+    readable message; nothing raised by the registration escapes this function.
     """
     store, storage, settings = context.store, context.storage, context.settings
     owner = _owner()
@@ -372,10 +372,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             )
         )
     finally:
-        # Attempts that did not publish leave no work directory behind.
-        for path in (storage.jobs / job_id).glob("work-*"):
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
+        storage.discard_attempts(job_id)  # attempts that did not publish leave nothing behind
 
 
 def _read_images(context: WorkerContext, job_id: str) -> list[np.ndarray]:
@@ -407,7 +404,7 @@ def _settle_lost(job_id: str, context: WorkerContext) -> str:
     return "skipped"
 
 
-# --- glue for a pool of worker processes ---------------------------------------------------
+# --- glue for a pool of worker processes (local pool or Celery's) ---------------------------
 
 _PROCESS_CONTEXT: WorkerContext | None = None
 

@@ -165,6 +165,8 @@ def test_old_database_gets_the_owner_column(tmp_path: Path) -> None:
     store.create("old", {}, False, 3)
     store.dispose()
     with sqlite3.connect(tmp_path / "old.db") as db:  # as an earlier version made it
+        db.execute("DROP TABLE alembic_version")  # releases before migrations had neither
+        db.execute("ALTER TABLE jobs DROP COLUMN dispatched")
         db.execute("DROP INDEX ix_jobs_owner_status")
         db.execute("ALTER TABLE jobs DROP COLUMN owner")
     store = JobStore.from_url(url)
