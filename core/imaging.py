@@ -1,8 +1,13 @@
 """Pixel-type conventions shared by matching, scoring and warping.
 
-Images are numpy arrays as OpenCV holds them: ``(H, W)`` grey or ``(H, W, C)`` with channels in
-BGR(A) order, dtype ``uint8`` or ``uint16``. Pixel coordinates: x to the right, y down, (0, 0) is
-the centre of the top-left pixel.
+Matching, scoring and the registered image work on *pictures*: numpy arrays as OpenCV holds
+them, ``(H, W)`` grey or ``(H, W, C)`` with channels in BGR(A) order, dtype ``uint8`` or
+``uint16``. Any other input is a *raster*: ``(H, W)`` or ``(H, W, C)`` with its bands in file
+order, of any of :data:`RASTER_DTYPES`, possibly a :class:`numpy.ma.MaskedArray` whose mask marks
+the invalid pixels (nodata, mask band; NaN samples are invalid too). A masked array is always a
+raster, whatever its dtype and band count (so a 3- or 4-band multispectral GeoTIFF is not taken
+for BGR(A)). :func:`matching_image` turns either into the picture that matching and scoring use.
+Pixel coordinates: x to the right, y down, (0, 0) is the centre of the top-left pixel.
 """
 
 from __future__ import annotations
@@ -13,6 +18,15 @@ import numpy as np
 from pwlreg.core.errors import InputError
 
 SUPPORTED_DTYPES = (np.uint8, np.uint16)
+RASTER_DTYPES = (np.uint8, np.uint16, np.int16, np.uint32, np.int32, np.float32, np.float64)
+"""Sample types a raster may have (GeoTIFF's usual ones)."""
+LUMINANCE = "luminance"
+RESCALE_PERCENTILES = (0.5, 99.5)
+"""Percentiles of the valid samples mapped to 0 and 255 by :func:`matching_image`'s rescale."""
+_RESCALE_SAMPLES = 1 << 20
+"""Valid samples (on a regular grid) the percentiles are estimated from."""
+_PICTURE_BAND = {1: (0,), 3: (2, 1, 0), 4: (2, 1, 0, 3)}
+"""Array channel of file band 1, 2, ... of a picture (OpenCV keeps colour as BGR(A))."""
 
 
 def check_image(image: np.ndarray, field: str) -> None:
@@ -44,8 +58,161 @@ def to_gray(image: np.ndarray) -> np.ndarray:
 
 
 def to_gray8(image: np.ndarray) -> np.ndarray:
-    """8-bit luminance, for matching (16-bit values are scaled by 255/65535 and rounded)."""
+    """8-bit luminance, for matching: 16-bit luminance is stretched linearly from its 0.5 and
+    99.5 percentiles (:data:`RESCALE_PERCENTILES`) to 0 and 255, so that 10- to 14-bit data
+    stored in 16 bits (most satellite and aerial rasters) keep their contrast."""
     gray = to_gray(image)
     if gray.dtype == np.uint8:
         return gray
-    return np.round(gray.astype(np.float32) * (255.0 / 65535.0)).astype(np.uint8)
+    return np.round(_rescaled(gray, None) * 255.0).astype(np.uint8)
+
+
+def is_picture(image: np.ndarray) -> bool:
+    """Whether ``image`` is a picture (see the module's docstring) rather than a raster."""
+    return (
+        isinstance(image, np.ndarray)
+        and not isinstance(image, np.ma.MaskedArray)
+        and image.dtype in SUPPORTED_DTYPES
+        and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in _PICTURE_BAND))
+    )
+
+
+def file_bands(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """The bands of a picture or raster in file order, and its validity.
+
+    Returns
+    -------
+    bands : ndarray, shape (H, W, C)
+        A view where possible (a picture's BGR(A) channels as R, G, B(, A)).
+    valid : ndarray of bool, shape (H, W), or None
+        False where any band is masked or not finite; None when every pixel is valid.
+    """
+    data = np.ma.getdata(image)
+    bands = data if data.ndim == 3 else data[:, :, None]
+    if is_picture(image):
+        return bands[:, :, list(_PICTURE_BAND[bands.shape[2]])], None
+    mask = np.ma.getmask(image)
+    invalid = None
+    if mask is not np.ma.nomask:
+        invalid = mask if mask.ndim == 2 else mask.any(axis=2)
+    if bands.dtype.kind == "f":
+        nan = ~np.isfinite(bands).all(axis=2)
+        invalid = nan if invalid is None else invalid | nan
+    return bands, (~invalid if invalid is not None and invalid.any() else None)
+
+
+def check_raster(image: np.ndarray, field: str) -> None:
+    """Raise :class:`InputError` unless ``image`` is a picture or a raster (module docstring)."""
+    if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
+        raise InputError(f"{field} must be a 2-D (one band) or 3-D (bands last) array", field)
+    if image.dtype not in RASTER_DTYPES:
+        names = ", ".join(np.dtype(d).name for d in RASTER_DTYPES)
+        raise InputError(f"{field} must have samples of {names}; got {image.dtype}", field)
+    if image.ndim == 3 and image.shape[2] < 1:
+        raise InputError(f"{field} has no band", field)
+    if min(image.shape[:2]) < 2:
+        raise InputError(f"{field} is too small: {image.shape[1]}x{image.shape[0]} pixels", field)
+
+
+def matching_image(image: np.ndarray, band: str = LUMINANCE, field: str = "image") -> np.ndarray:
+    """The picture matching and scoring use, from a picture or a raster.
+
+    * A picture with ``band="luminance"`` is used as it is (matching and scoring take its
+      luminance, the registered image keeps its colour).
+    * A picture with a band number gives that band (1 = red of a colour picture), same dtype.
+    * A raster gives an 8-bit grey picture: the chosen band, or with ``"luminance"`` the mean
+      of all its bands after each is rescaled (so that no band dominates by its units); the
+      rescale maps the 0.5 and 99.5 percentiles of the valid samples to 0 and 255
+      (:data:`RESCALE_PERCENTILES`, estimated on up to 2**20 valid pixels), clipping the tails
+      (specular glints, saturated or dead pixels). 8 bits lose nothing the scoring uses: its
+      joint histogram has at most 256 bins per image, and matching works on 8 bits anyway.
+    * Invalid pixels (masked, or NaN) are filled with a smooth extension of the valid ones
+      (:func:`fill_invalid`), so they hold no edge or corner for the matcher and only
+      low-information counts for the joint histograms: the scoring has no validity mask. A
+      raster with invalid pixels gives a BGRA picture (grey in B, G and R, alpha 0 where
+      invalid), so that they stay transparent in registered.png.
+
+    Parameters
+    ----------
+    image : ndarray or numpy.ma.MaskedArray
+        Picture or raster (module docstring).
+    band : str
+        ``"luminance"`` or a 1-based band number (as a string or an int).
+    field : str
+        Name used in error messages.
+
+    Raises
+    ------
+    InputError
+        Not an image, a band it does not have, or no valid pixel.
+    """
+    check_raster(image, field)
+    count = 1 if image.ndim == 2 else image.shape[2]
+    number = None if band == LUMINANCE else int(band)
+    if number is not None and not 1 <= number <= count:
+        raise InputError(
+            f"option band is {number} but {field} has {count} band(s)", "options.band"
+        )
+    if is_picture(image):
+        if number is None or image.ndim == 2:
+            return image
+        return np.ascontiguousarray(image[:, :, _PICTURE_BAND[count][number - 1]])
+    bands, valid = file_bands(image)
+    chosen = range(count) if number is None else (number - 1,)
+    grey = np.zeros(bands.shape[:2], np.float32)
+    for b in chosen:
+        grey += _rescaled(bands[:, :, b], valid)
+    if len(chosen) > 1:
+        grey = _rescaled(grey, valid)
+    if valid is not None:
+        if not valid.any():
+            raise InputError(f"{field} has no valid pixel (all nodata or masked)", field)
+        grey = fill_invalid(grey, valid)
+    grey8 = np.round(grey * 255.0).astype(np.uint8)
+    if valid is None:
+        return grey8
+    return np.dstack([grey8, grey8, grey8, valid.astype(np.uint8) * np.uint8(255)])
+
+
+def _rescaled(band: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    """``band`` as float32 in [0, 1], its valid samples' percentiles mapped to 0 and 1."""
+    step = max(1, int(np.ceil(np.sqrt(band.size / _RESCALE_SAMPLES))))
+    sample = band[::step, ::step]
+    sample = sample[valid[::step, ::step]] if valid is not None else sample.ravel()
+    sample = sample[np.isfinite(sample)] if sample.dtype.kind == "f" else sample
+    if sample.size == 0:
+        return np.zeros(band.shape, np.float32)
+    lo, hi = np.percentile(sample, RESCALE_PERCENTILES)
+    span = float(hi - lo) or 1.0
+    with np.errstate(invalid="ignore"):
+        out = (band.astype(np.float32) - np.float32(lo)) * np.float32(1.0 / span)
+    return np.clip(np.nan_to_num(out, copy=False, nan=0.0), 0.0, 1.0, out=out)
+
+
+def fill_invalid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``values`` with its invalid pixels filled by a smooth extension of the valid ones.
+
+    Push-pull: the valid samples and their weights are averaged down a Gaussian pyramid until
+    every pixel of the coarsest level has some weight, then each level's gaps are filled from the
+    level below, upsampled (a valid pixel keeps its value). The fill has no edge along the
+    border of the valid area and no texture inside it.
+
+    Parameters
+    ----------
+    values : ndarray of float32, shape (H, W)
+    valid : ndarray of bool, shape (H, W)
+        At least one pixel valid.
+    """
+    weight = valid.astype(np.float32)
+    level = np.where(valid, values, 0).astype(np.float32)  # weighted: value * weight
+    levels = []
+    while not (weight > 0).all() and min(level.shape) > 1:
+        levels.append((level, weight))
+        level, weight = cv2.pyrDown(level), cv2.pyrDown(weight)
+    filled = np.where(weight > 0, level / np.maximum(weight, 1e-12), 0.0).astype(np.float32)
+    if not (weight > 0).all():
+        filled[weight <= 0] = float(values[valid].mean())
+    for level, weight in reversed(levels):
+        up = cv2.pyrUp(filled, dstsize=(level.shape[1], level.shape[0]))
+        filled = level + (1.0 - np.minimum(weight, 1.0)) * up
+    return filled

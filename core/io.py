@@ -20,6 +20,8 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from pwlreg.core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
+from pwlreg.core.formats.geotiff import is_tiff, probe_tiff, read_tiff
+from pwlreg.core.formats.points import is_gis_points, read_gis_points
 from pwlreg.core.imaging import check_image
 
 if TYPE_CHECKING:
@@ -29,9 +31,12 @@ if TYPE_CHECKING:
 Image.MAX_IMAGE_PIXELS = None
 _DECODER_MAX_PIXELS = 2**30
 """OpenCV refuses to decode more pixels than this whatever the caller allows."""
-_FORMATS = ("PNG", "JPEG", "TIFF", "PPM", "BMP")
-"""Pillow's names of the accepted formats (its JPEG reader also opens the multi-picture JPEGs
-of many cameras)."""
+MAX_BANDS_AT_LIMIT = 16
+"""A raster may hold at most this many times ``max_pixels`` samples (all bands): 16 bands at
+the pixel limit, more bands on smaller rasters."""
+_FORMATS = ("PNG", "JPEG", "PPM", "BMP")
+"""Pillow's names of the formats it checks (its JPEG reader also opens the multi-picture JPEGs
+of many cameras); TIFFs are GDAL's (:mod:`core.formats.geotiff`)."""
 
 
 def probe_image(
@@ -41,12 +46,14 @@ def probe_image(
 
     Reads the header (kind and size, checked against ``max_pixels``, so decompression bombs
     are refused cheaply) and the file's structure where the format allows it without decoding
-    (PNG: every chunk's CRC and the end chunk, which finds truncated and damaged files).
+    (PNG: every chunk's CRC and the end chunk; TIFF: that every strip or tile lies inside the
+    file; both find truncated files).
 
     Parameters
     ----------
     source : bytes or path
-        Encoded PNG, JPEG, TIFF, PNM (PPM/PGM) or BMP.
+        Encoded PNG, JPEG, TIFF (GeoTIFF: 1-N bands of 8/16/32-bit integers or 32/64-bit
+        floats), PNM (PPM/PGM) or BMP.
     max_pixels : int, optional
         Largest accepted ``width * height``; at most 2**30, OpenCV's own limit.
     field : str
@@ -57,28 +64,28 @@ def probe_image(
     UnsupportedMediaError
         Empty, not an image of a supported kind, or structurally broken.
     InputError
-        Floating-point or 32-bit samples, or less than 2 pixels wide or high.
+        Samples of a type the registration cannot use, or less than 2 pixels wide or high.
     ImageTooLargeError
         Over ``max_pixels``.
     """
-    data = source if isinstance(source, bytes) else Path(source).read_bytes()
-    if not data:
+    head = _head(source)
+    if not head:
         raise UnsupportedMediaError(f"{field} is empty", field)
-    try:
-        with Image.open(io.BytesIO(data), formats=_FORMATS) as header:
-            width, height = header.size
-            mode, kind = header.mode, header.format
-            header.verify()
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
-        raise UnsupportedMediaError(
-            f"{field} is not a supported image (PNG, JPEG, TIFF, PPM/PGM or BMP), or it is "
-            "truncated or damaged",
-            field,
-        ) from exc
-    # What decoding would refuse (core.imaging.check_image), known from the header already:
-    # TIFF alone, of the formats above, can hold float, signed or 32-bit samples.
-    if kind == "TIFF" and (mode in ("F", "I") or mode.startswith("I;16S")):
-        raise InputError(f"{field} must be 8- or 16-bit (unsigned), got Pillow mode {mode}", field)
+    bands = 1
+    if is_tiff(head):
+        width, height, bands = probe_tiff(source, field)
+    else:
+        data = source if isinstance(source, bytes) else Path(source).read_bytes()
+        try:
+            with Image.open(io.BytesIO(data), formats=_FORMATS) as header:
+                width, height = header.size
+                header.verify()
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError) as exc:
+            raise UnsupportedMediaError(
+                f"{field} is not a supported image (PNG, JPEG, TIFF, PPM/PGM or BMP), or it is "
+                "truncated or damaged",
+                field,
+            ) from exc
     if min(width, height) < 2:
         raise InputError(f"{field} is too small: {width}x{height} pixels", field)
     max_pixels = min(max_pixels or _DECODER_MAX_PIXELS, _DECODER_MAX_PIXELS)
@@ -88,13 +95,26 @@ def probe_image(
             f"{max_pixels}",
             field,
         )
+    if width * height * bands > MAX_BANDS_AT_LIMIT * max_pixels:
+        raise ImageTooLargeError(
+            f"{field} has {bands} bands of {width}x{height} pixels: more samples than "
+            f"{MAX_BANDS_AT_LIMIT} bands at the pixel limit of {max_pixels}",
+            field,
+        )
     return width, height
+
+
+def _head(source: bytes | str | os.PathLike) -> bytes:
+    if isinstance(source, bytes):
+        return source[:8]
+    with open(source, "rb") as handle:
+        return handle.read(8)
 
 
 def read_image(
     source: bytes | str | os.PathLike, max_pixels: int | None = None, field: str = "image"
 ) -> np.ndarray:
-    """Decode an image file into an OpenCV-layout array, after :func:`probe_image`'s checks.
+    """Decode an image file, after :func:`probe_image`'s checks.
 
     Parameters
     ----------
@@ -107,8 +127,10 @@ def read_image(
 
     Returns
     -------
-    ndarray
-        ``(H, W)`` grey or ``(H, W, 3|4)`` BGR(A), uint8 or uint16.
+    ndarray or numpy.ma.MaskedArray
+        A picture, ``(H, W)`` grey or ``(H, W, 3|4)`` BGR(A), uint8 or uint16, or, for a TIFF
+        of other sample types or bands or with invalid pixels, a raster: a masked array with
+        the bands in file order (:mod:`core.imaging`, :func:`core.formats.geotiff.read_tiff`).
 
     Raises
     ------
@@ -117,6 +139,9 @@ def read_image(
     ImageTooLargeError
         Over ``max_pixels``.
     """
+    if is_tiff(_head(source)):
+        probe_image(source, max_pixels, field)
+        return read_tiff(source, field)
     data = source if isinstance(source, bytes) else Path(source).read_bytes()
     probe_image(data, max_pixels, field)
     try:
@@ -131,14 +156,33 @@ def read_image(
     return image
 
 
-def load_points(data: bytes | str, field: str = "points") -> tuple[np.ndarray, np.ndarray]:
-    """Parse a points file: JSON ``{"reference": [[x, y], ...], "moving": [[x, y], ...]}`` or
-    CSV with the header ``x,y,x_moving,y_moving``.
+def load_points(
+    data: bytes | str,
+    field: str = "points",
+    *,
+    reference: bytes | str | os.PathLike | None = None,
+    moving: bytes | str | os.PathLike | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Parse a points file: JSON ``{"reference": [[x, y], ...], "moving": [[x, y], ...]}``, CSV
+    with the header ``x,y,x_moving,y_moving``, a QGIS Georeferencer ``.points`` file or a
+    GeoTIFF whose GCPs are the moving image's (the format is sniffed).
+
+    Parameters
+    ----------
+    data : bytes or str
+    field : str
+        Name used in error messages.
+    reference, moving : bytes or path, optional
+        The image files, needed by the GIS formats (:mod:`core.formats.points`): their map
+        coordinates are placed in the reference through its georeferencing.
 
     Returns
     -------
     reference, moving : ndarray of float64, shape (N, 2)
+        Pixels, x right, y down, (0, 0) the centre of the top-left pixel.
     """
+    if data and is_gis_points(data):
+        return read_gis_points(data, field, reference=reference, moving=moving)
     text = data.decode("utf-8-sig", errors="replace") if isinstance(data, bytes) else data
     text = text.lstrip("\ufeff").strip()
     if not text:
@@ -219,10 +263,13 @@ def mesh_document(result: RegistrationResult) -> dict:
         "initial_triangles": result.initial_triangles.tolist(),
         "final_triangles": result.final_triangles.tolist(),
         "swaps": [
-            {"removed": list(s.removed), "added": list(s.added), "delta": s.delta}
+            {"removed": list(s.removed), "added": list(s.added), "delta": s.delta,
+             "move": s.move}
             for s in result.search.steps
         ],
         "extrapolated": result.extrapolated.tolist(),
+        "inserted": result.inserted.tolist(),
+        "insertion": result.insertion,
         "quality": result.quality.to_dict(),
         "triangle_scores": [
             None if not np.isfinite(v) else round(float(v), 4)
@@ -252,6 +299,7 @@ def convergence_document(result: RegistrationResult) -> dict:
                 "removed": list(st.removed),
                 "added": list(st.added),
                 "delta": st.delta,
+                "move": st.move,
                 "mi": st.mi,
                 "nmi": st.nmi,
                 "elapsed_s": st.elapsed_s,

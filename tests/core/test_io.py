@@ -135,10 +135,8 @@ def _damage_idat(png: bytes, fix_crc: bool) -> bytes:
 @pytest.mark.parametrize(
     "image, ext, match",
     [
-        (np.zeros((5, 5), np.float32), ".tiff", "8- or 16-bit"),
-        (np.zeros((5, 5), np.int32), ".tiff", "8- or 16-bit"),
-        (np.zeros((5, 5), np.int16), ".tiff", "8- or 16-bit"),
         (np.zeros((1, 50), np.uint8), ".png", "too small"),
+        (np.zeros((1, 50), np.uint8), ".tiff", "too small"),
     ],
 )
 def test_probe_refuses_what_decoding_would_refuse(image, ext, match):
@@ -146,6 +144,16 @@ def test_probe_refuses_what_decoding_would_refuse(image, ext, match):
     for check in (probe_image, read_image):
         with pytest.raises(InputError, match=match):
             check(data)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.int32, np.int16])
+def test_tiffs_of_other_sample_types_are_rasters(dtype):
+    image = np.arange(30, dtype=dtype).reshape(5, 6)
+    data = cv2.imencode(".tiff", image)[1].tobytes()
+    assert probe_image(data) == (6, 5)
+    raster = read_image(data)
+    assert isinstance(raster, np.ma.MaskedArray) and raster.dtype == dtype
+    np.testing.assert_array_equal(raster.data, image)
 
 
 @pytest.mark.parametrize(

@@ -1,0 +1,167 @@
+"""GeoJSON of a registration: the final mesh (``mesh.geojson``) and the tie points
+(``tiepoints.geojson``).
+
+With a georeferenced reference the coordinates are WGS 84 longitude, latitude (RFC 7946),
+reprojected with pyproj from the reference's CRS through its geotransform; when the CRS has no
+transformation to WGS 84 they stay in the reference's CRS, named by a ``crs`` member (the 2008
+GeoJSON convention GDAL still reads). Without georeferencing they are pixels of the reference
+image (x right, y down, (0, 0) the centre of the top-left pixel), said by the same member.
+Each document also has a ``coordinate_system`` member saying which in words.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+from pyproj import CRS as ProjCRS
+from pyproj import Transformer
+from pyproj.exceptions import ProjError
+
+from pwlreg.core.formats.geotiff import Georeference, georeference
+
+if TYPE_CHECKING:
+    from pwlreg.core.pipeline import RegistrationResult
+    from pwlreg.core.results import Sources
+
+MEDIA_TYPE = "application/geo+json"
+PIXEL_CRS = "urn:pwlreg:crs:pixel"
+"""``crs`` name of documents in reference pixels."""
+_DIGITS = {"lonlat": 9, "map": 4, "pixel": 4}
+"""Decimals kept: 1e-9 degree is 0.1 mm on the ground."""
+
+Mapper = Callable[[np.ndarray], np.ndarray]
+
+
+def _frame(geo: Georeference | None) -> tuple[Mapper, dict, str]:
+    """How reference pixels become output coordinates: the mapper, the members naming the
+    coordinate system, and the rounding key."""
+    if geo is None:
+        return (lambda p: np.asarray(p, np.float64).reshape(-1, 2),
+                {"crs": {"type": "name", "properties": {"name": PIXEL_CRS}},
+                 "coordinate_system": "pixels of the reference image: x right, y down, (0, 0) "
+                 "the centre of the top-left pixel"}, "pixel")
+    try:
+        transformer = Transformer.from_crs(ProjCRS.from_wkt(geo.crs.to_wkt()), "EPSG:4326",
+                                           always_xy=True)
+        corners = geo.to_map(np.array([[0.0, 0.0], [geo.width - 1.0, geo.height - 1.0]]))
+        ok = np.isfinite(np.array(transformer.transform(corners[:, 0], corners[:, 1]))).all()
+    except ProjError:
+        ok = False
+    if ok:
+        def to_lonlat(pixels: np.ndarray) -> np.ndarray:
+            xy = geo.to_map(pixels)
+            return np.stack(transformer.transform(xy[:, 0], xy[:, 1]), axis=1)
+
+        return to_lonlat, {"coordinate_system": "WGS 84 longitude, latitude (RFC 7946), "
+                           f"reprojected from the reference's {_crs_name(geo)}"}, "lonlat"
+    code = geo.crs.to_epsg()
+    name = f"urn:ogc:def:crs:EPSG::{code}" if code else geo.crs.to_wkt()
+    return geo.to_map, {"crs": {"type": "name", "properties": {"name": name}},
+                        "coordinate_system": f"the reference's {_crs_name(geo)} (no "
+                        "transformation to WGS 84 is known for it)"}, "map"
+
+
+def _crs_name(geo: Georeference) -> str:
+    code = geo.crs.to_epsg()
+    return f"EPSG:{code}" if code else "coordinate reference system"
+
+
+def _rounded(coords: np.ndarray, key: str) -> list[list[float]]:
+    return np.round(coords, _DIGITS[key]).tolist()
+
+
+def mesh_collection(result: RegistrationResult, sources: Sources) -> dict:
+    """The final mesh as a FeatureCollection of triangles.
+
+    Each Feature is a Polygon (the triangle in the reference, counter-clockwise, closed), with
+    ``id`` its index in ``final_triangles`` and the properties ``vertices`` (indices into
+    mesh.json's vertex lists), ``reference_px`` and ``moving_px`` (the corners in each image's
+    pixels), ``swapped`` (true when the edge-swap search made it: it is not a triangle of the
+    initial mesh), ``consistency`` (mesh.json's ``triangle_scores``: the share of mutual
+    information lost when the moving side moves 8 pixels of the scoring level; 1 a sharp peak,
+    0 or less no evidence; null without texture) and ``extrapolated`` (a corner is a border
+    vertex whose moving position was extrapolated, not measured).
+    """
+    to_out, members, key = _frame(georeference(sources.reference_path))
+    ref = np.asarray(result.reference_vertices, np.float64).reshape(-1, 2)
+    mov = np.asarray(result.moving_vertices, np.float64).reshape(-1, 2)
+    tris = np.asarray(result.final_triangles, np.int64).reshape(-1, 3)
+    initial = {tuple(sorted(t)) for t in np.asarray(result.initial_triangles).tolist()}
+    scores = np.asarray(result.quality.triangle_scores, np.float64)
+    extrapolated = np.asarray(result.extrapolated, bool)[tris].any(axis=1).tolist()
+    corners = to_out(ref)[tris] if len(tris) else np.zeros((0, 3, 2))
+    ab, ac = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    clockwise = ab[:, 0] * ac[:, 1] < ab[:, 1] * ac[:, 0]
+    corners[clockwise] = corners[clockwise][:, [0, 2, 1]]  # RFC 7946: counter-clockwise rings
+    rings = _rounded(np.concatenate([corners, corners[:, :1]], axis=1), key)
+    ref_px, mov_px = _rounded(ref[tris], "pixel"), _rounded(mov[tris], "pixel")
+    features = []
+    for t, vertices in enumerate(tris.tolist()):
+        score = scores[t] if t < len(scores) else np.nan
+        features.append({
+            "type": "Feature",
+            "id": t,
+            "geometry": {"type": "Polygon", "coordinates": [rings[t]]},
+            "properties": {
+                "vertices": vertices,
+                "reference_px": ref_px[t],
+                "moving_px": mov_px[t],
+                "swapped": tuple(sorted(vertices)) not in initial,
+                "consistency": round(float(score), 4) if np.isfinite(score) else None,
+                "extrapolated": extrapolated[t],
+            },
+        })
+    return {"type": "FeatureCollection", **members, "features": features}
+
+
+def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
+    """The conjugate points the mesh stands on, as a FeatureCollection of Points.
+
+    Each Feature is the point in the reference (``id`` its index in mesh.json's
+    ``matching.reference``), with the properties ``reference_px`` and ``moving_px`` (pixels of
+    each image), ``moving_position`` (where the moving point is on the ground, in the same
+    coordinates as the geometry, when the moving image is georeferenced by a geotransform:
+    the line from the geometry to it is the shift the registration corrects), ``residual_px``
+    (distance to the robust epipolar geometry, pixels; null when the filter was off or skipped)
+    and ``status`` (``kept``). Pairs dropped by the checks are not kept by the matcher one by
+    one: the member ``dropped`` counts them by cause (as mesh.json's ``matching.rejected``),
+    with ``source`` (``client``, ``lk``, ``sift``) and ``notes``.
+    """
+    to_out, members, key = _frame(georeference(sources.reference_path))
+    points = result.points
+    ref = np.asarray(points.reference, np.float64).reshape(-1, 2)
+    mov = np.asarray(points.moving, np.float64).reshape(-1, 2)
+    coords = to_out(ref) if len(ref) else np.zeros((0, 2))
+    moving_geo = georeference(sources.moving_path)
+    moving_coords = None
+    if moving_geo is not None and key == "lonlat" and len(mov):
+        mov_frame = _frame(moving_geo)
+        if mov_frame[2] == key:
+            moving_coords = mov_frame[0](mov)
+    features = []
+    for i in range(len(ref)):
+        residual = float(points.residuals[i]) if i < len(points.residuals) else float("nan")
+        properties = {
+            "reference_px": _rounded(ref[i], "pixel"),
+            "moving_px": _rounded(mov[i], "pixel"),
+            "residual_px": None if not np.isfinite(residual) else round(residual, 4),
+            "status": "kept",
+        }
+        if moving_coords is not None:
+            properties["moving_position"] = _rounded(moving_coords[i], key)
+        features.append({
+            "type": "Feature",
+            "id": i,
+            "geometry": {"type": "Point", "coordinates": _rounded(coords[i], key)},
+            "properties": properties,
+        })
+    return {
+        "type": "FeatureCollection",
+        **members,
+        "source": points.source,
+        "dropped": {k: int(v) for k, v in points.rejected.items()},
+        "notes": list(points.notes),
+        "features": features,
+    }
