@@ -133,9 +133,13 @@ class Metrics:
         return generate_latest(self.registry)
 
 
+SUBMISSION_PATHS = ("/v1/jobs", "/processes/pwl-registration/execution")
+"""The paths of the two ways to submit a job (the ``/v1`` API and OGC API - Processes)."""
+
+
 class CountRefusals:
-    """ASGI middleware counting the answers of ``POST /v1/jobs`` that refuse the submission
-    (status 400 and above), by client (``request.state.client``, set by
+    """ASGI middleware counting the answers of a submission (:data:`SUBMISSION_PATHS`) that
+    refuse it (status 400 and above), by client (``request.state.client``, set by
     :func:`service.auth.get_client`) and status code, in the metrics of the application."""
 
     def __init__(self, app: ASGIApp) -> None:
@@ -145,7 +149,7 @@ class CountRefusals:
         if (
             scope["type"] != "http"
             or scope["method"] != "POST"
-            or not scope["path"].rstrip("/").endswith("/v1/jobs")
+            or not scope["path"].rstrip("/").endswith(SUBMISSION_PATHS)
         ):
             await self.app(scope, receive, send)
             return

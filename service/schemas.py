@@ -9,7 +9,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, RootModel
 
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.service.store import JobStatus
@@ -376,4 +376,334 @@ class Readiness(BaseModel):
     checks: dict[str, bool] = Field(
         description="Result of each check: database, queue, storage.",
         examples=[{"database": True, "queue": True, "storage": True}],
+    )
+
+
+# --- OGC API - Processes - Part 1: Core (OGC 18-062r2) -----------------------------------------
+
+_PROCESS_ID = "pwl-registration"
+_OGC_REL = "http://www.opengis.net/def/rel/ogc/1.0/"
+
+
+class OgcLink(BaseModel):
+    """A link object (OGC ``link.yaml``); absent members are left out of the document."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "href": "/processes/pwl-registration",
+                    "rel": "self",
+                    "type": "application/json",
+                    "title": "This process",
+                }
+            ]
+        }
+    )
+
+    href: str = Field(
+        description="Target of the link, a path relative to the server root.",
+        examples=["/processes"],
+    )
+    rel: str | None = Field(None, description="Relation type.", examples=["self"])
+    type: str | None = Field(
+        None, description="Media type of the target.", examples=["application/json"]
+    )
+    title: str | None = Field(None, description="Human-readable title of the target.")
+
+
+class LandingPage(BaseModel):
+    """The landing page of the OGC API (``landingPage.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "title": "pwlreg",
+                    "description": "Piecewise-linear image registration",
+                    "links": [{"href": "/conformance", "rel": f"{_OGC_REL}conformance",
+                               "type": "application/json", "title": "Conformance classes"}],
+                }
+            ]
+        }
+    )
+
+    title: str = Field(description="Name of the service.", examples=["pwlreg"])
+    description: str = Field(description="What the service does.")
+    links: list[OgcLink] = Field(
+        description="The API definition (service-desc, service-doc), the conformance "
+        "declaration, the processes and the jobs."
+    )
+
+
+class ConformanceDeclaration(BaseModel):
+    """The conformance classes the API implements (``confClasses.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"conformsTo": ["http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/core"]}
+            ]
+        }
+    )
+
+    conformsTo: list[str] = Field(  # noqa: N815 (OGC member name)
+        description="URIs of the conformance classes."
+    )
+
+
+class ProcessSummary(BaseModel):
+    """A process as listed by ``/processes`` (``processSummary.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": _PROCESS_ID,
+                    "version": "0.1.0",
+                    "title": "Piecewise-linear registration of an image pair",
+                    "jobControlOptions": ["async-execute", "dismiss"],
+                    "outputTransmission": ["reference"],
+                    "links": [{"href": f"/processes/{_PROCESS_ID}", "rel": "self",
+                               "type": "application/json", "title": "Process description"}],
+                }
+            ]
+        }
+    )
+
+    id: str = Field(description="Identifier of the process.", examples=[_PROCESS_ID])
+    version: str = Field(description="Version of the process (the service's).")
+    title: str = Field(description="Title of the process.")
+    description: str = Field(description="What the process does.")
+    keywords: list[str] = Field(description="Keywords.")
+    jobControlOptions: list[Literal["sync-execute", "async-execute", "dismiss"]] = Field(  # noqa: N815
+        description="How the process may be executed: asynchronously only, and its jobs may "
+        "be dismissed."
+    )
+    outputTransmission: list[Literal["value", "reference"]] = Field(  # noqa: N815
+        description="How results are delivered: by reference (links to the files)."
+    )
+    links: list[OgcLink] = Field(description="The process description and its execution.")
+
+
+class ParameterDescription(BaseModel):
+    """An input or output of the process with the schema of its values."""
+
+    model_config = ConfigDict(
+        populate_by_name=True,
+        json_schema_extra={
+            "examples": [
+                {
+                    "title": "Reference image",
+                    "description": "The image the moving image is registered onto.",
+                    "minOccurs": 1,
+                    "maxOccurs": 1,
+                    "schema": {"type": "string", "contentEncoding": "binary",
+                               "contentMediaType": "image/png"},
+                }
+            ]
+        },
+    )
+
+    title: str = Field(description="Title of the input or output.")
+    description: str = Field(description="What it is, with its units and conventions.")
+    minOccurs: int | None = Field(  # noqa: N815 (OGC member name)
+        None, description="Inputs: 1 if required, 0 if optional."
+    )
+    maxOccurs: int | None = Field(  # noqa: N815 (OGC member name)
+        None, description="Inputs: the most values the input takes (1)."
+    )
+    value_schema: dict[str, Any] = Field(
+        alias="schema",
+        description="Schema of the values (an OpenAPI 3.0 schema object).",
+    )
+
+
+class ProcessDescription(ProcessSummary):
+    """The full description of a process (``process.yaml``): its inputs and outputs."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "id": _PROCESS_ID,
+                    "version": "0.1.0",
+                    "title": "Piecewise-linear registration of an image pair",
+                    "jobControlOptions": ["async-execute", "dismiss"],
+                    "outputTransmission": ["reference"],
+                    "inputs": {},
+                    "outputs": {},
+                    "links": [],
+                }
+            ]
+        }
+    )
+
+    inputs: dict[str, ParameterDescription] = Field(
+        description="The inputs: reference, moving (images), points and options."
+    )
+    outputs: dict[str, ParameterDescription] = Field(
+        description="The outputs, one per result file of a registration."
+    )
+
+
+class ProcessList(BaseModel):
+    """The processes of the service (``processList.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"processes": [], "links": [
+            {"href": "/processes", "rel": "self", "type": "application/json"}]}]}
+    )
+
+    processes: list[ProcessSummary] = Field(description="Every process (pwlreg has one).")
+    links: list[OgcLink] = Field(description="This document.")
+
+
+class OutputSelection(BaseModel):
+    """An output requested by an execute request (``output.yaml``)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={"examples": [{"transmissionMode": "reference"}]},
+    )
+
+    format: dict[str, Any] | None = Field(
+        None, description="Requested format; each output has one media type, which must match."
+    )
+    transmissionMode: Literal["value", "reference"] | None = Field(  # noqa: N815
+        None, description="Only 'reference' is supported (the results are links to files)."
+    )
+
+
+class Subscriber(BaseModel):
+    """Where the end of the job is announced (``subscriber.yaml``), as with /v1 webhooks."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [{"successUri": "https://example.org/done",
+                          "failedUri": "https://example.org/failed"}]
+        },
+    )
+
+    successUri: str | None = Field(  # noqa: N815 (OGC member name)
+        None, description="POSTed the job's /v1 status document when it succeeds."
+    )
+    inProgressUri: str | None = Field(  # noqa: N815 (OGC member name)
+        None, description="Accepted and ignored."
+    )
+    failedUri: str | None = Field(  # noqa: N815 (OGC member name)
+        None, description="POSTed the job's /v1 status document when it fails or is dismissed."
+    )
+
+
+class ExecuteRequest(BaseModel):
+    """An execute request (``execute.yaml``)."""
+
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {
+                    "inputs": {
+                        "reference": {"href": "https://data.example.org/reference.png",
+                                      "type": "image/png"},
+                        "moving": {"value": "iVBORw0KGgo...", "mediaType": "image/png"},
+                        "points": {"value": {"reference": [[10, 12], [200, 15], [105, 180]],
+                                             "moving": [[12, 11], [203, 17], [104, 184]]},
+                                   "mediaType": "application/json"},
+                        "options": {"bins": 32},
+                    },
+                    "response": "document",
+                }
+            ]
+        },
+    )
+
+    inputs: dict[str, Any] = Field(
+        description="The inputs by identifier. Images: a qualified value "
+        '({"value": "<base64>", "mediaType": "image/png"}), a bare base64 string or a link '
+        '({"href": ...}) to an origin the service reads from. points: a points object '
+        '({"reference": [[x, y], ...], "moving": [[x, y], ...]}), bare or as a qualified '
+        "value, a CSV text as a qualified value (mediaType text/csv) or a link. options: an "
+        "options object, bare or as a qualified value."
+    )
+    outputs: dict[str, OutputSelection] | None = Field(
+        None, description="Outputs to return; every output is returned whatever is named."
+    )
+    response: Literal["raw", "document"] | None = Field(
+        None, description="Only 'document' is supported: the results are a JSON document."
+    )
+    subscriber: Subscriber | None = Field(
+        None, description="Webhook URLs announcing the end of the job."
+    )
+
+
+class OgcStatusInfo(BaseModel):
+    """Status of a job (``statusInfo.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "jobID": _JOB_ID_EXAMPLE,
+                    "processID": _PROCESS_ID,
+                    "type": "process",
+                    "status": "running",
+                    "message": "optimizing",
+                    "created": "2026-01-01T12:00:00Z",
+                    "started": "2026-01-01T12:00:01Z",
+                    "updated": "2026-01-01T12:00:09Z",
+                    "progress": 57,
+                    "links": [{"href": f"/jobs/{_JOB_ID_EXAMPLE}", "rel": "self",
+                               "type": "application/json", "title": "This job"}],
+                }
+            ]
+        }
+    )
+
+    jobID: str = Field(description="Identifier of the job.")  # noqa: N815 (OGC member name)
+    processID: str = Field(description="The process the job runs.")  # noqa: N815
+    type: Literal["process"] = Field("process", description="Always 'process'.")
+    status: JobStatus = Field(
+        description="accepted, running, successful, failed or dismissed."
+    )
+    message: str | None = Field(
+        None,
+        description="The stage of a running job, the summary of a successful one, the reason "
+        "of a failure.",
+    )
+    created: datetime = Field(description="When the job was accepted (UTC).")
+    started: datetime | None = Field(None, description="When the last attempt started (UTC).")
+    finished: datetime | None = Field(None, description="When the job ended (UTC).")
+    updated: datetime = Field(description="Last change of the job (UTC).")
+    progress: int = Field(ge=0, le=100, description="Estimated completion in percent.")
+    links: list[OgcLink] = Field(
+        description="The job, its full /v1 status document (alternate: quality, options, "
+        "error) and, once successful, its results."
+    )
+
+
+class OgcJobList(BaseModel):
+    """One page of jobs, newest first (``jobList.yaml``)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"jobs": [], "links": [
+            {"href": "/jobs?limit=10&offset=0", "rel": "self", "type": "application/json"}]}]}
+    )
+
+    jobs: list[OgcStatusInfo] = Field(description="The jobs of this page, newest first.")
+    links: list[OgcLink] = Field(description="This page and the next and previous pages.")
+
+
+class Results(RootModel[dict[str, OgcLink]]):
+    """The results of a successful job (``results.yaml``): each output by reference."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"mesh": {"href": f"/v1/jobs/{_JOB_ID_EXAMPLE}/mesh", "type": "application/json",
+                          "title": "Meshes, swaps and matching results"}}
+            ]
+        }
     )

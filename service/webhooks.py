@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import SplitResult, urlsplit, urlunsplit
 
 import httpx
 
@@ -56,7 +56,8 @@ IPNetwork = ipaddress.IPv4Network | ipaddress.IPv6Network
 
 
 class TargetError(ValueError):
-    """A webhook target the service refuses; the message says why (no secret in it)."""
+    """A URL the service refuses to call (a webhook target, an input given by reference); the
+    message says why (no secret in it)."""
 
 
 # --- allow-list and target checks ------------------------------------------------------------
@@ -96,8 +97,9 @@ class AllowList:
         return any(address in network for network in self.networks)
 
 
-def _address_kind(address: IPAddress) -> str | None:
-    """Why ``address`` is not a public target (None: it is public)."""
+def address_kind(address: IPAddress) -> str | None:
+    """Why ``address`` is not a public target (None: it is public): ``loopback``,
+    ``link-local``, ``multicast``, ``unspecified``, ``private``, ``reserved`` or ``non-public``."""
     for kind in ("loopback", "link_local", "multicast", "unspecified", "private", "reserved"):
         if getattr(address, f"is_{kind}"):
             return kind.replace("_", "-")
@@ -106,7 +108,9 @@ def _address_kind(address: IPAddress) -> str | None:
     return None
 
 
-def _resolve(host: str, port: int) -> list[IPAddress]:
+def resolve_host(host: str, port: int) -> list[IPAddress]:
+    """Every address of ``host`` (an IP literal is its own address), IPv4-mapped IPv6
+    addresses as IPv4; :class:`TargetError` if the name cannot be resolved."""
     try:
         literal = ipaddress.ip_address(host.strip("[]"))
     except ValueError:
@@ -127,6 +131,21 @@ def _unmapped(address: IPAddress) -> IPAddress:
     return address
 
 
+def split_url(url: str) -> SplitResult:
+    """The parts of a URL a client gave (webhook or input), or :class:`TargetError` if it is
+    too long, holds white space or control characters, or does not parse (port included)."""
+    if len(url) > MAX_URL_LENGTH:
+        raise TargetError(f"the URL is longer than {MAX_URL_LENGTH} characters")
+    if any(c.isspace() or ord(c) < 0x20 for c in url):
+        raise TargetError("the URL contains white space or control characters")
+    try:
+        parts = urlsplit(url)
+        parts.port  # noqa: B018 (parsing the port is what raises for a bad one)
+    except ValueError as exc:
+        raise TargetError(f"not a valid URL ({exc})") from None
+    return parts
+
+
 def check_target(url: str, allow: AllowList) -> str:
     """Check a webhook URL: http(s), a host, and (unless allowed) only public addresses.
 
@@ -140,15 +159,8 @@ def check_target(url: str, allow: AllowList) -> str:
     TargetError
         Saying what is wrong.
     """
-    if len(url) > MAX_URL_LENGTH:
-        raise TargetError(f"the URL is longer than {MAX_URL_LENGTH} characters")
-    if any(c.isspace() or ord(c) < 0x20 for c in url):
-        raise TargetError("the URL contains white space or control characters")
-    try:
-        parts = urlsplit(url)
-        port = parts.port
-    except ValueError as exc:
-        raise TargetError(f"not a valid URL ({exc})") from None
+    parts = split_url(url)
+    port = parts.port
     if parts.scheme.lower() not in ("http", "https"):
         raise TargetError(f"the URL must be http or https, not {parts.scheme or 'relative'!r}")
     host = parts.hostname
@@ -157,8 +169,8 @@ def check_target(url: str, allow: AllowList) -> str:
     if allow.allows_host(host):
         return url
     port = port or (443 if parts.scheme.lower() == "https" else 80)
-    for address in _resolve(host, port):
-        kind = _address_kind(address)
+    for address in resolve_host(host, port):
+        kind = address_kind(address)
         if kind is not None and not allow.allows_address(address):
             raise TargetError(
                 f"the host {host!r} resolves to the {kind} address {address}; webhooks to the "
@@ -195,12 +207,20 @@ def pinned_target(url: str, allow: AllowList) -> PinnedRequest:
     if allow.allows_host(host):
         return PinnedRequest(url, {}, {})
     https = parts.scheme.lower() == "https"
+    return pin(url, resolve_host(host, parts.port or (443 if https else 80))[0])
+
+
+def pin(url: str, address: IPAddress) -> PinnedRequest:
+    """A request for the http(s) ``url`` that connects to ``address`` (already checked), with
+    the URL's ``Host`` header and, for https, its host name for SNI and certificate
+    verification."""
+    parts = urlsplit(url)
+    https = parts.scheme.lower() == "https"
     port = parts.port or (443 if https else 80)
-    address = _resolve(host, port)[0]
     literal = f"[{address}]" if isinstance(address, ipaddress.IPv6Address) else str(address)
     pinned = urlunsplit((parts.scheme, f"{literal}:{port}", parts.path or "/", parts.query, ""))
     headers = {"Host": parts.netloc.rsplit("@", 1)[-1]}
-    extensions = {"sni_hostname": host} if https else {}
+    extensions = {"sni_hostname": parts.hostname or ""} if https else {}
     return PinnedRequest(pinned, headers, extensions)
 
 
