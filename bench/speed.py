@@ -3,7 +3,7 @@
 Prints, side by side in one process:
 
 1. On a 1024x768 pair with 500 points: the whole optimizing stage (scoring images prepared,
-   greedy search run on a ready initial mesh); a floor of 4 full-image
+   default optimizer run on a ready initial mesh); a floor of 4 full-image
    passes of one remap plus one joint histogram; the same greedy search computed naively
    (every gain from fresh warps of its quad, no reuse); the registered-image warp against
    scikit-image's ``PiecewiseAffineTransform`` + ``warp``; writing the registered image as PNG
@@ -34,7 +34,9 @@ from PIL import Image
 
 from pwlreg.core.io import encode_png
 from pwlreg.core.mesh import Mesh
-from pwlreg.core.optimize import greedy_search, quad_triples
+from pwlreg.core.optimize import quad_triples
+from pwlreg.core.optimizers import OPTIMIZERS
+from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import register
 from pwlreg.core.similarity import mutual_information, prepare_images, triangle_statistics
 from pwlreg.core.triangulation import initial_mesh
@@ -148,8 +150,11 @@ def side_by_side(repeat: int, naive_passes: int) -> dict:
     # initial mesh (built the same way each time, the search changes it) is made untimed.
     meshes = [initial_mesh(rp, mp, 25.0)[0] for _ in range(repeat)]
 
+    options = RegistrationOptions()  # the default optimizer and its settings
+
     def optimize() -> None:
-        out["search"] = greedy_search(meshes.pop(), prepare_images(ref, mov, 16))
+        out["search"] = OPTIMIZERS[options.optimizer](
+            meshes.pop(), prepare_images(ref, mov, options.bins), options, None)
 
     t_opt = _best_of(optimize, repeat)
     t_floor = _best_of(lambda: floor_passes(ref, mov), repeat)

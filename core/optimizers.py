@@ -44,7 +44,7 @@ def greedy(
     return greedy_search(
         mesh, images, cost=options.cost, epsilon=options.epsilon,
         max_iterations=options.max_iterations, progress=progress,
-        epsilon_pixels=options.epsilon_pixels,
+        epsilon_pixels=options.epsilon_pixels, lookahead=options.lookahead,
     )
 
 
@@ -75,7 +75,7 @@ def greedy_pyramid(
         result = greedy_search(
             mesh, level, cost=options.cost, epsilon=options.epsilon,
             max_iterations=max(options.max_iterations - len(steps), 0), progress=report,
-            epsilon_pixels=options.epsilon_pixels,
+            epsilon_pixels=options.epsilon_pixels, lookahead=options.lookahead,
         )
         steps += [replace(s, iteration=len(steps) + k + 1) for k, s in enumerate(result.steps)]
     result.initial_mi, result.initial_nmi = start.initial_mi, start.initial_nmi

@@ -36,6 +36,10 @@ SHIFT_PX = 8.0
 #: the cost: 8 pixels there are 1.3-2.5 % of the image side.
 SCORING_SIDE = 640
 
+#: Grey-level bins of the joint histograms the verdict (and the choice of border vertices)
+#: uses, whatever the optimizer's ``bins``: its thresholds were calibrated with these.
+SCORING_BINS = 16
+
 #: Fewest pixels for a triangle's MI to mean something; smaller triangles get no score.
 MIN_TRIANGLE_PIXELS = 64
 

@@ -102,19 +102,23 @@ def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> Scor
     )
 
 
-def reduced(images: ScoringImages, max_side: int) -> tuple[ScoringImages, float]:
+def reduced(
+    images: ScoringImages, max_side: int, *, bins: int | None = None
+) -> tuple[ScoringImages, float]:
     """Both images halved (Gaussian pyramid) until the reference's longer side is at most
     ``max_side``, and the scale: a pixel ``p`` of either image is ``(p + 0.5) * scale - 0.5``
-    there. Both are halved the same number of times, so a shift means the same in both."""
+    there. Both are halved the same number of times, so a shift means the same in both.
+    ``bins`` (default: those of ``images``) is the joint histogram's size there."""
+    bins = images.bins if bins is None else bins
     ref = images.reference_values.reshape(images.shape)
     mov = images.moving
     scale = 1.0
     while max(ref.shape) > max_side:
         ref, mov = cv2.pyrDown(ref), cv2.pyrDown(mov)
         scale /= 2
-    if scale == 1.0:
+    if scale == 1.0 and bins == images.bins:
         return images, 1.0
-    return prepare_images(ref, mov, images.bins), scale
+    return prepare_images(ref, mov, bins), scale
 
 
 def smoothed(images: ScoringImages, sigma: float) -> ScoringImages:

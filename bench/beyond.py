@@ -1,0 +1,202 @@
+"""Optimizers against the ceiling of edge swaps (a search told the true error), issue 10.
+
+Run ``python -m bench.beyond [--quick] [--configs a,b] [--cases synthetic,middlebury]``. For
+every case of :func:`bench.quality.build_cases` (synthetic polyhedral scenes with noisy true
+points, Middlebury pairs with 150 true points and with automatic points) it registers the pair
+with each configuration of :data:`CONFIGS` on the paper's mesh (``extent=hull``), runs
+:func:`bench.ceiling.ceiling_search` from the same initial mesh, and prints per case the mean
+endpoint error (pixels) of Delaunay, every configuration and the ceiling, then per group the
+median share of the achievable gain each configuration realises and how many cases it leaves
+worse than Delaunay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import cv2
+import numpy as np
+
+from bench import middlebury, quality, trust
+from bench.ceiling import ceiling_search, realised_share
+from bench.metrics import endpoint_error
+from bench.quality import Case, CaseData, build_cases
+from pwlreg.core.errors import InputError
+from pwlreg.core.pipeline import register, warm_up
+
+PAPER = {"optimizer": "greedy", "epsilon_pixels": 0, "lookahead": False, "bins": 16,
+         "insert_vertices": "never"}
+"""The paper's method (Algorithm 1 with one epsilon, 16 bins, no insertion)."""
+
+CONFIGS: dict[str, dict] = {
+    "paper": PAPER,
+    "sized eps": {**PAPER, "epsilon_pixels": 250},
+    "pyramid": {**PAPER, "epsilon_pixels": 250, "optimizer": "greedy-pyramid"},
+    "lookahead": {**PAPER, "epsilon_pixels": 250, "lookahead": True},
+    "bins32": {**PAPER, "epsilon_pixels": 250, "bins": 32},
+    "swaps only": {"insert_vertices": "never"},
+    "default": {},
+}
+"""Report name -> options of each configuration (the rest default)."""
+
+
+def _trust_case(case: trust.Case) -> Case:
+    """A case of the trust suite (scenes built for the automatic matcher), without points."""
+
+    def load() -> CaseData:
+        scene = case.make()
+        return CaseData(reference=scene.reference, moving=scene.moving, points=None,
+                        truth_x=scene.truth_x, truth_y=scene.truth_y, valid=scene.covisible,
+                        correctness=None, compatibility=None)
+
+    return Case(case.name, "synthetic", case.group, {}, load)
+
+
+def run(cases, configs: dict[str, dict], automatic: bool = False) -> list[dict]:
+    rows = []
+    for case in cases:
+        t0 = time.perf_counter()
+        data = case.load()
+        kind = f"{case.kind} auto" if automatic else case.kind
+        row = {"name": case.name, "kind": kind, "epe": {}, "time": {}}
+        base = None
+        # Delaunay over the pairs as matched (or given): no insertion, no swaps.
+        plain = {"optimizer": "none", "insert_vertices": "never"}
+        for label, opts in {"delaunay": plain, **configs}.items():
+            given = {} if automatic else {"epipolar_filter": False}
+            try:
+                r = register(data.reference, data.moving, data.points,
+                             {**opts, **given, "extent": "hull"})
+            except InputError as exc:  # too few reliable automatic pairs: nothing to compare
+                print(f"{case.name}: {label}: {exc}")
+                break
+            base = base or r
+            row["epe"][label] = endpoint_error(r.reference_vertices, r.moving_vertices,
+                                               r.final_triangles, data.truth_x, data.truth_y,
+                                               data.valid)["mean"]
+            row["time"][label] = r.timings["optimization_s"]
+        else:
+            ceiling = ceiling_search(base.reference_vertices, base.moving_vertices,
+                                     base.final_triangles, data.truth_x, data.truth_y,
+                                     data.valid)
+            row["epe"]["ceiling"] = endpoint_error(
+                base.reference_vertices, base.moving_vertices, ceiling, data.truth_x,
+                data.truth_y, data.valid)["mean"]
+        if "ceiling" not in row["epe"]:
+            continue
+        row["case_s"] = time.perf_counter() - t0
+        rows.append(row)
+        cells = " ".join(f"{k}={v:.3f}" for k, v in row["epe"].items())
+        print(f"{case.name:40s} {cells}  ({row['case_s']:.0f} s)", flush=True)
+    return rows
+
+
+def summary(rows: list[dict], configs: dict[str, dict]) -> None:
+    groups = {
+        "synthetic": [r for r in rows if r["kind"] == "synthetic" and "plane" not in r["name"]],
+        "synthetic automatic (trust suite)": [r for r in rows if r["kind"] == "synthetic auto"],
+        "middlebury truth": [r for r in rows if r["kind"] == "middlebury" and "truth" in r["name"]],
+        "middlebury auto": [r for r in rows if r["kind"] == "middlebury" and "auto" in r["name"]],
+    }
+    for title, group in groups.items():
+        if not group:
+            continue
+        print(f"\n{title} ({len(group)} cases): median share of the achievable gain / EPE "
+              f"reduction vs Delaunay, mean and median / cases worse than Delaunay (> 2 % worse) "
+              "/ median optimization s")
+        ceil_red = np.mean([1 - r["epe"]["ceiling"] / r["epe"]["delaunay"] for r in group])
+        print(f"  ceiling: mean reduction {100 * ceil_red:.1f} %")
+        for label in configs:
+            shares = [realised_share(r["epe"]["delaunay"], r["epe"][label], r["epe"]["ceiling"])
+                      for r in group]
+            reductions = [1 - r["epe"][label] / r["epe"]["delaunay"] for r in group]
+            worse = sum(r["epe"][label] > r["epe"]["delaunay"] for r in group)
+            much = [r["name"] for r in group if r["epe"][label] > 1.02 * r["epe"]["delaunay"]]
+            t = np.median([r["time"][label] for r in group])
+            print(f"  {label:12s} share {np.nanmedian(shares):.2f}  reduction mean "
+                  f"{100 * np.mean(reductions):5.1f} % median {100 * np.median(reductions):5.1f} %"
+                  f"  worse {worse} ({len(much)})  {t:.2f} s" + (f"  > 2 % worse: {', '.join(much)}"
+                                                                if much else ""))
+
+
+def _arosics_best(pair: str) -> float | None:
+    """Best mean EPE of the peer measurement (../shared/peers/arosics/results.json), if any."""
+    path = middlebury.real_data_root().parent.parent / "peers" / "arosics" / "results.json"
+    if not path.is_file():
+        return None
+    runs = json.loads(path.read_text())["pairs"].get(pair, {}).get("runs", [])
+    values = [r["dense_tps"]["all"]["mean_epe"] for r in runs if r.get("dense_tps")]
+    return min(values) if values else None
+
+
+def dense_flow(reference: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV DIS optical flow (medium preset) from the reference to the moving image: the
+    moving position of every reference pixel."""
+    grey = [im if im.ndim == 2 else cv2.cvtColor(im, cv2.COLOR_BGR2GRAY)
+            for im in (reference, moving)]
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(*grey, None)
+    h, w = grey[0].shape
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    return xx + flow[..., 0], yy + flow[..., 1]
+
+
+def frame_section(configs: dict[str, dict]) -> None:
+    """Middlebury, automatic points, the whole frame: pwlreg against AROSICS and DIS."""
+    print("\nMiddlebury, automatic points: mean EPE px over the valid pixels the mesh covers "
+          "(coverage of the valid pixels) / time s, for extent=hull and frame")
+    for name in middlebury.available_middlebury():
+        pair = middlebury.load_middlebury(name)
+        cells = []
+        for label, opts in configs.items():
+            for extent in ("hull", "frame"):
+                t0 = time.perf_counter()
+                r = register(pair.reference, pair.moving, options={**opts, "extent": extent})
+                t = time.perf_counter() - t0
+                e = endpoint_error(r.reference_vertices, r.moving_vertices, r.final_triangles,
+                                   pair.truth_x, pair.truth_y, pair.valid)
+                cells.append(f"{label} {extent} {e['mean']:.3f} ({100 * e['coverage']:.0f} %) "
+                             f"{t:.2f} s")
+        t0 = time.perf_counter()
+        fx, fy = dense_flow(pair.reference, pair.moving)
+        t = time.perf_counter() - t0
+        err = np.hypot(fx - pair.truth_x, fy - pair.truth_y)[pair.valid]
+        cells.append(f"DIS {np.nanmean(err):.3f} {t:.3f} s")
+        peer = _arosics_best(name)
+        cells.append("AROSICS (peer file) " + ("-" if peer is None else f"{peer:.3f}"))
+        print(f"  {name:26s} " + " | ".join(cells), flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one case per family")
+    parser.add_argument("--configs", help="comma-separated subset of CONFIGS")
+    parser.add_argument("--kinds", default="synthetic,middlebury",
+                        help="case kinds to run (synthetic, middlebury)")
+    parser.add_argument("--middlebury-points", type=int, default=quality.MIDDLEBURY_POINTS,
+                        help="true points drawn on each Middlebury pair (the issue quotes 100)")
+    parser.add_argument("--frame", action="store_true",
+                        help="only the Middlebury whole-frame comparison with AROSICS and DIS")
+    parser.add_argument("--automatic", action="store_true",
+                        help="synthetic cases without points (the automatic matcher)")
+    args = parser.parse_args(argv)
+    configs = CONFIGS if not args.configs else {k: CONFIGS[k] for k in args.configs.split(",")}
+    kinds = set(args.kinds.split(","))
+    warm_up()
+    quality.MIDDLEBURY_POINTS = args.middlebury_points
+    if args.frame:
+        frame_section(configs)
+        return 0
+    if args.automatic:
+        cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick)
+                 if c.group not in ("unrelated", "partial overlap")]
+    else:
+        cases = [c for c in build_cases(quick=args.quick) if c.kind in kinds]
+    rows = run(cases, configs, automatic=args.automatic)
+    summary(rows, configs)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""Tests of core.refine: vertex insertion guided by the current piecewise map."""
+
+import numpy as np
+
+from pwlreg.core.pipeline import register
+from pwlreg.core.refine import guided_pairs
+from pwlreg.core.similarity import prepare_images
+from pwlreg.core.triangulation import initial_mesh
+from pwlreg.core.warp import piecewise_map
+from tests.core.synthetic import book_map, open_book
+
+SIZE, CREASE = (320, 240), 150.0
+
+
+def _far_points() -> tuple[np.ndarray, np.ndarray]:
+    # A grid that leaves a 90 px band around the crease without vertices: the mesh's triangles
+    # span the fold, so their affine maps are off there.
+    xs = np.array([5.0, 60.0, 105.0, 195.0, 250.0, 314.0])
+    ys = np.array([5.0, 80.0, 160.0, 234.0])
+    ref = np.array([(x, y) for x in xs for y in ys])
+    return ref, np.column_stack(book_map(ref[:, 0], ref[:, 1], CREASE))
+
+
+def _mean_epe(result) -> float:
+    h, w = SIZE[1], SIZE[0]
+    mx, my, label = piecewise_map(result.reference_vertices, result.moving_vertices,
+                                  result.final_triangles, (h, w))
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    tx, ty = book_map(xx, yy, CREASE)
+    return float(np.nanmean(np.hypot(mx - tx, my - ty)[label >= 0]))
+
+
+def test_guided_pairs_lie_on_the_true_map() -> None:
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    ref, mov = _far_points()
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    found = guided_pairs(ref_img, mov_img, mesh.reference, mesh.moving, mesh.triangles,
+                         prepare_images(ref_img, mov_img, 16), measured=len(ref), budget=len(ref),
+                         epsilon=0.01, epsilon_pixels=250.0)
+    assert found.counts["inserted"] == len(found.reference) >= 10, found.counts
+    assert found.counts["inserted"] <= len(ref)  # the budget
+    truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1], CREASE))
+    miss = np.hypot(*(found.moving - truth).T)
+    assert np.median(miss) < 0.5 and miss.max() < 2.0, np.sort(miss)[-5:]
+    # Near the fold the old map was wrong by pixels: the new pairs correct it there.
+    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, SIZE[::-1])
+    cells = np.rint(found.reference).astype(int)
+    old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
+                        my[cells[:, 1], cells[:, 0]] - truth[:, 1])
+    assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
+
+
+def test_insertion_lowers_the_error_and_is_recorded() -> None:
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    points = _far_points()
+    options = {"epipolar_filter": False, "extent": "hull"}
+    plain = register(ref_img, mov_img, points, {**options, "insert_vertices": "automatic"})
+    refined = register(ref_img, mov_img, points, {**options, "insert_vertices": "always"})
+    assert plain.insertion is None and not plain.inserted.any()  # client points are kept as sent
+    assert refined.inserted.sum() == refined.insertion["inserted"] > 0
+    assert len(refined.reference_vertices) == len(refined.points.reference) + refined.inserted.sum()
+    assert _mean_epe(refined) < 0.5 * _mean_epe(plain)
