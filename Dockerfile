@@ -5,6 +5,8 @@
 #   docker build -t pwlreg .
 #   docker run -p 8000:8000 -v pwlreg-data:/data pwlreg
 #
+# The same image runs the scale-out mode (Celery, Redis, PostgreSQL): see docker-compose.yml.
+#
 # Settings are PWLREG_* environment variables (see README), e.g. -e PWLREG_WORKERS=4.
 
 ARG PYTHON_VERSION=3.11
@@ -24,10 +26,12 @@ WORKDIR /src
 COPY pyproject.toml README.md ./
 # The placeholder packages and setuptools' build directory go away with the layer: build/ would
 # otherwise hold the empty placeholders, newer than the real files copied next.
-RUN mkdir -p pwlreg core service/api \
-    && touch pwlreg/__init__.py core/__init__.py service/__init__.py service/api/__init__.py \
+RUN mkdir -p pwlreg core/formats service/api service/migrations/versions \
+    && touch pwlreg/__init__.py core/__init__.py core/formats/__init__.py service/__init__.py \
+       service/api/__init__.py service/migrations/__init__.py \
+       service/migrations/versions/__init__.py \
     && pip install --upgrade pip \
-    && pip install . \
+    && pip install ".[scaleout]" \
     && pip uninstall -y pwlreg \
     && rm -rf build pwlreg core service ./*.egg-info
 COPY pwlreg ./pwlreg
@@ -38,7 +42,7 @@ COPY service ./service
 # serves its first job without the few seconds of compilation (on another CPU model numba
 # compiles again, into the same writable cache).
 RUN pip install --no-deps . \
-    && cd / && python -c "import cv2, pwlreg, pwlreg.core.pipeline, pwlreg.service.app, pwlreg.service.cli" \
+    && cd / && python -c "import cv2, pwlreg, pwlreg.core.pipeline, pwlreg.service.app, pwlreg.service.cli, pwlreg.service.celery_app" \
     && NUMBA_CACHE_DIR=/opt/numba-cache python -c "from pwlreg.core.pipeline import warm_up; warm_up()"
 
 # --- runtime: the virtual environment only, as a non-root user ----------------------------------

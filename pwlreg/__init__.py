@@ -6,7 +6,11 @@ The in-process API (the HTTP service in :mod:`pwlreg.service` runs the same func
 
     result = pwlreg.register("reference.png", "moving.png", extent="frame")
     print(result.summary(), result.quality.verdict)
-    pwlreg.write_outputs(result, "out/")          # mesh.json, registered.png, convergence.json
+    pwlreg.write_outputs(result, "out/")          # mesh.json, registered.png, convergence.json, ...
+
+Pass ``sources=pwlreg.Sources(reference_array, moving_array, reference_path, moving_path)`` to
+:func:`write_outputs` for the results drawn on the inputs (the pictures) or read from their files
+(``registered.tif`` of a georeferenced reference).
 
 Images are paths, encoded bytes or OpenCV-layout arrays (grey, BGR or BGRA; uint8 or uint16);
 points are ``(reference (N, 2), moving (N, 2))`` arrays in pixels or a points file (JSON or
@@ -28,11 +32,12 @@ from pwlreg.core.errors import (
     RegistrationError,
     UnreliableResultError,
 )
+from pwlreg.core.formats.points import GCPS_KEYWORD
 from pwlreg.core.io import load_points, read_image
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import STAGES, RegistrationResult
 from pwlreg.core.pipeline import register as _register
-from pwlreg.core.results import write_outputs
+from pwlreg.core.results import Sources, write_outputs
 
 try:
     from importlib.metadata import PackageNotFoundError, version
@@ -43,6 +48,7 @@ except PackageNotFoundError:  # a source tree that is not installed
 
 __all__ = [
     "STAGES",
+    "Sources",
     "InputError",
     "NotEnoughPointsError",
     "RegistrationError",
@@ -63,13 +69,17 @@ def _image(value: ImageLike, field: str) -> np.ndarray:
     return value if isinstance(value, np.ndarray) else read_image(value, field=field)
 
 
-def _points(value: PointsLike | None) -> tuple[np.ndarray, np.ndarray] | None:
+def _points(value: PointsLike | None, reference: ImageLike, moving: ImageLike
+            ) -> tuple[np.ndarray, np.ndarray] | None:
     if value is None or isinstance(value, tuple):
         return value
-    if isinstance(value, bytes):
-        return load_points(value)
+    # The GIS formats (QGIS .points, GCPs) place map coordinates through the images' files.
+    files = {name: image for name, image in (("reference", reference), ("moving", moving))
+             if not isinstance(image, np.ndarray)}
+    if isinstance(value, bytes) or value == GCPS_KEYWORD:  # the keyword: the moving file's GCPs
+        return load_points(value, **files)
     with open(value, "rb") as handle:
-        return load_points(handle.read())
+        return load_points(handle.read(), **files)
 
 
 def register(
@@ -88,8 +98,9 @@ def register(
     reference, moving : ndarray, bytes or path
         The images: arrays in OpenCV layout, encoded files, or paths to them.
     points : (ndarray, ndarray), bytes or path, optional
-        Conjugate points ``(reference (N, 2), moving (N, 2))`` in pixels, or a points file.
-        Without them the automatic matcher finds them.
+        Conjugate points ``(reference (N, 2), moving (N, 2))`` in pixels, or a points file
+        (JSON, CSV, QGIS ``.points``, or a GeoTIFF with GCPs; ``"gcps"`` takes the moving
+        GeoTIFF's own). Without them the automatic matcher finds them.
     options : RegistrationOptions or mapping, optional
         All options at once; ``option_values`` override single ones (``optimizer="greedy"``).
     progress : callable, optional
@@ -112,4 +123,5 @@ def register(
               else dict(options or {}))
     merged.update(option_values)
     return _register(_image(reference, "reference"), _image(moving, "moving"),
-                     points=_points(points), options=merged, progress=progress)
+                     points=_points(points, reference, moving), options=merged,
+                     progress=progress)

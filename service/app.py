@@ -13,17 +13,18 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from pwlreg.service import __version__
-from pwlreg.service.api import jobs, system
+from pwlreg.service.api import jobs, ogc, system, viewer
 from pwlreg.service.auth import load_api_keys
 from pwlreg.service.deps import Services
+from pwlreg.service.hrefs import HrefAllowList
 from pwlreg.service.logs import job_extra
 from pwlreg.service.maintenance import Janitor
 from pwlreg.service.metrics import CountRefusals, Metrics
 from pwlreg.service.problems import PROBLEM_MEDIA_TYPE, install_problem_handlers
-from pwlreg.service.queue import JobQueue, LocalProcessQueue
-from pwlreg.service.schemas import Options
+from pwlreg.service.queue import CeleryQueue, JobQueue, LocalProcessQueue
+from pwlreg.service.schemas import ExecuteRequest, Options
 from pwlreg.service.settings import Settings
-from pwlreg.service.storage import LocalStorage
+from pwlreg.service.storage import open_storage
 from pwlreg.service.store import FINISHED, JobStore
 from pwlreg.service.webhooks import Webhooks, load_secret
 from pwlreg.service.worker import resolve_runner
@@ -46,6 +47,8 @@ Pixel coordinates: x right, y down, (0, 0) the centre of the top-left pixel.
 def _default_queue(
     settings: Settings, store: JobStore, on_finished: Callable[[str], None]
 ) -> JobQueue:
+    if settings.queue == "celery":
+        return CeleryQueue(settings, store, on_finished)
     return LocalProcessQueue(settings, store, on_finished)
 
 
@@ -59,7 +62,8 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
     settings : Settings, optional
         Defaults to the settings read from the ``PWLREG_*`` environment.
     queue_factory : callable, optional
-        Builds the job queue; defaults to a :class:`~service.queue.LocalProcessQueue`.
+        Builds the job queue; defaults to the queue ``settings.queue`` names (a
+        :class:`~service.queue.LocalProcessQueue` or a :class:`~service.queue.CeleryQueue`).
 
     Returns
     -------
@@ -73,7 +77,8 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         resolve_runner(settings.runner)  # a misconfigured runner stops the start, loudly
         api_keys = load_api_keys(settings)  # so do malformed keys (the message shows no key)
-        storage = LocalStorage(settings.data_dir)
+        HrefAllowList.parse(settings.href_allow)  # and a malformed origin of PWLREG_HREF_ALLOW
+        storage = open_storage(settings)
         storage.prepare()
         store = JobStore.from_url(settings.resolved_database_url)
         store.create_schema()
@@ -93,7 +98,9 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
                 )
 
         queue = make_queue(settings, store, on_finished)
-        metrics.track_store(store.count_by_status, queue.depth, settings.workers)
+        # Celery mode: the workers are processes of other services, not of this one.
+        workers = settings.workers if settings.queue == "local" else 0
+        metrics.track_store(store.count_by_status, queue.depth, workers)
         janitor = Janitor(settings, store, storage, queue)
         janitor.recover()  # jobs of a previous process that died go back to the queue
         queue.start()
@@ -103,8 +110,8 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
             settings, store, storage, queue, metrics, api_keys, webhooks
         )
         log.info(
-            "pwlreg ready: data in %s, %d worker(s), %s", settings.data_dir.resolve(),
-            settings.workers,
+            "pwlreg ready: data in %s, %s, %s", settings.data_dir.resolve(),
+            f"{workers} worker(s)" if workers else f"Celery queue {settings.broker_queue}",
             f"API keys of {len(api_keys)} client(s)" if api_keys else "no API keys (open access)",
         )
         try:
@@ -121,11 +128,17 @@ def create_app(settings: Settings | None = None, queue_factory: QueueFactory | N
         summary="Piecewise-linear image registration as a service",
         description=DESCRIPTION,
         lifespan=lifespan,
+        docs_url=None,  # /docs and /redoc: the viewer router, from the package's own files
+        redoc_url=None,
     )
     install_problem_handlers(app)
     app.add_middleware(CountRefusals)
     app.include_router(jobs.router)
     app.include_router(system.router)
+    app.include_router(ogc.router)
+    app.include_router(viewer.router)
+    app.mount(viewer.STATIC_URL, viewer.static_files(), name="static")
+    app.state.html_landing = viewer.index_page  # the HTML answer of / (ogc's landing page)
     app.openapi = lambda: _openapi(app)  # type: ignore[method-assign]
     return app
 
@@ -144,12 +157,17 @@ def _openapi(app: FastAPI) -> dict[str, Any]:
         tags=[
             {"name": "jobs", "description": "Registration jobs and their results."},
             {"name": "system", "description": "Options, health, readiness and metrics."},
+            {"name": "ogc", "description": "OGC API - Processes - Part 1: Core, over the same "
+             "jobs."},
         ],
     )
     schemas = doc.setdefault("components", {}).setdefault("schemas", {})
     options_schema = Options.model_json_schema(ref_template="#/components/schemas/{model}")
     schemas.update(options_schema.pop("$defs", {}))
     schemas["Options"] = options_schema
+    execute_schema = ExecuteRequest.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas.update(execute_schema.pop("$defs", {}))
+    schemas["ExecuteRequest"] = execute_schema
     problem_ref = {"$ref": "#/components/schemas/ProblemDetails"}
     for path in doc.get("paths", {}).values():
         for operation in path.values():

@@ -1,7 +1,8 @@
-"""Command line: ``pwlreg serve``, ``pwlreg register`` and ``pwlreg submit``.
+"""Command line: ``pwlreg serve``, ``pwlreg worker``, ``pwlreg register`` and ``pwlreg submit``.
 
 ``register`` runs a registration in this process; ``submit`` sends it to a running service and
-downloads the results; ``serve`` runs the service. The option flags of ``register`` and
+downloads the results; ``serve`` runs the service; ``worker`` runs a Celery worker of a service
+in scale-out mode. The option flags of ``register`` and
 ``submit`` are derived from :class:`core.options.RegistrationOptions` (declared once).
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import sys
 import time
@@ -19,6 +21,7 @@ from typing import Any, Literal, TextIO
 
 from pydantic import BaseModel, ValidationError
 
+from pwlreg.core.formats.points import GCPS_KEYWORD
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.results import RESULTS
 
@@ -146,7 +149,10 @@ def cmd_register(args: argparse.Namespace) -> int:
         options = RegistrationOptions(**options_from_args(args))
         reference = read_image(args.reference, field="reference")
         moving = read_image(args.moving, field="moving")
-        points = load_points(Path(args.points).read_bytes()) if args.points else None
+        points = None
+        if args.points:
+            data = GCPS_KEYWORD if _own_gcps(args.points) else Path(args.points).read_bytes()
+            points = load_points(data, reference=args.reference, moving=args.moving)
         result = register(reference, moving, points=points, options=options, progress=progress)
         write_outputs(result, args.out, sources=Sources(reference, moving, Path(args.reference),
                                                         Path(args.moving)))
@@ -181,6 +187,12 @@ def _problem_text(response: Any) -> str:
     return f"HTTP {response.status_code}: {doc}"
 
 
+def _own_gcps(points: str) -> bool:
+    """Whether ``--points`` names the moving GeoTIFF's own GCPs: the word ``gcps``, unless a
+    file has that name."""
+    return points.lower() == GCPS_KEYWORD and not Path(points).exists()
+
+
 def cmd_submit(args: argparse.Namespace) -> int:
     """Upload a pair to a service, follow the job with a progress bar, download the results."""
     import httpx
@@ -192,7 +204,10 @@ def cmd_submit(args: argparse.Namespace) -> int:
     given = options.model_dump(exclude_unset=True, mode="json")
     out = Path(args.out)
     paths = {"reference": Path(args.reference), "moving": Path(args.moving)}
-    if args.points:
+    fields = {"options": json.dumps(given)} if given else {}
+    if args.points and _own_gcps(args.points):
+        fields["points"] = GCPS_KEYWORD
+    elif args.points:
         paths["points"] = Path(args.points)
     for name, path in paths.items():
         if not path.is_file():
@@ -206,8 +221,8 @@ def cmd_submit(args: argparse.Namespace) -> int:
         handles = {name: path.open("rb") for name, path in paths.items()}
         try:
             files = {name: (paths[name].name, fh) for name, fh in handles.items()}
-            data = {"options": json.dumps(given)} if given else None
-            response = client.post("/v1/jobs", files=files, data=data, headers=headers)
+            response = client.post("/v1/jobs", files=files, data=fields or None,
+                                   headers=headers)
         except httpx.TransportError as exc:
             raise CommandError(f"cannot reach {args.url}: {exc}", 1) from None
         finally:
@@ -313,6 +328,73 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+# --- worker ----------------------------------------------------------------------------------
+
+
+SCHEMA_WAIT_SECONDS = 120.0
+"""How long ``pwlreg worker`` waits for the job database and for the API to upgrade its
+schema (services started together: the database starts, then the API migrates)."""
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    """Run a Celery worker of the scale-out mode: it takes jobs from the broker
+    (PWLREG_BROKER_URL) and runs them against the job database (PWLREG_DATABASE_URL) and the
+    shared data directory (PWLREG_DATA_DIR), as the embedded workers do."""
+    from pwlreg.service.logs import configure_logging
+    from pwlreg.service.settings import Settings
+    from pwlreg.service.storage import open_storage
+
+    overrides: dict[str, Any] = {}
+    if args.data_dir is not None:
+        overrides["data_dir"] = args.data_dir
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as exc:
+        raise CommandError(_validation_message(exc, prefix="settings")) from None
+    if not settings.broker_url:
+        raise CommandError("no broker: set PWLREG_BROKER_URL (e.g. redis://127.0.0.1:6379/0)")
+    if args.concurrency is not None and args.concurrency < 1:
+        raise CommandError("--concurrency must be at least 1")
+    level = args.log_level.upper()
+    configure_logging(level, settings.log_format)
+    open_storage(settings).prepare()
+    from pwlreg.service.celery_app import run_worker  # imports the worker and core: seconds
+
+    _wait_for_schema(settings, SCHEMA_WAIT_SECONDS)
+    return run_worker(settings, args.concurrency or settings.workers,
+                      logging.getLevelName(level))
+
+
+def _wait_for_schema(settings: Any, timeout: float) -> None:
+    """Return once the job database answers at the schema revision of this release; raise
+    :class:`CommandError` at once for a revision this release does not know, or after
+    ``timeout`` seconds."""
+    from pwlreg.service.store import JobStore, SchemaBehind, SchemaError
+
+    store = JobStore.from_url(settings.resolved_database_url)
+    deadline = time.monotonic() + timeout
+    waiting = ""
+    try:
+        while True:
+            try:
+                store.check_schema()
+                return
+            except SchemaBehind as exc:
+                reason = str(exc)
+            except SchemaError as exc:
+                raise CommandError(str(exc)) from None
+            except Exception as exc:  # noqa: BLE001 (a database not up yet: wait for it)
+                reason = f"job database unusable: {type(exc).__name__}: {exc}"
+            if time.monotonic() > deadline:
+                raise CommandError(f"{reason} (waited {timeout:g} s)")
+            if reason != waiting:
+                logging.getLogger("pwlreg.service.cli").warning("waiting: %s", reason)
+                waiting = reason
+            time.sleep(1.0)
+    finally:
+        store.dispose()  # the pool processes open their own connections
+
+
 # --- parser ----------------------------------------------------------------------------------
 
 
@@ -336,14 +418,28 @@ def build_parser() -> argparse.ArgumentParser:
                        choices=["critical", "error", "warning", "info", "debug"])
     serve.set_defaults(func=cmd_serve)
 
+    worker = sub.add_parser("worker", help="run a Celery worker (scale-out mode)",
+                            description=cmd_worker.__doc__)
+    worker.add_argument("--concurrency", type=int, default=None,
+                        help="registrations at once, one process each (default: PWLREG_WORKERS "
+                        "or the CPU count)")
+    worker.add_argument("--data-dir", type=Path, default=None,
+                        help="the data directory shared with the API (default: PWLREG_DATA_DIR "
+                        "or ./data)")
+    worker.add_argument("--log-level", default="info",
+                        choices=["critical", "error", "warning", "info", "debug"])
+    worker.set_defaults(func=cmd_worker)
+
     register = sub.add_parser("register", help="register an image pair in this process",
                               description=cmd_register.__doc__)
     register.add_argument("reference", help="reference image file")
     register.add_argument("moving", help="moving image file")
     register.add_argument("--out", required=True, type=Path,
                           help="output directory (mesh.json, registered.png, convergence.json)")
-    register.add_argument("--points", help="conjugate points file (JSON or CSV); default: "
-                          "automatic matching")
+    register.add_argument("--points", help="conjugate points file (JSON or CSV pixel pairs, "
+                          "a QGIS .points file, or a GeoTIFF with the moving image's GCPs), or "
+                          "'gcps' for the moving GeoTIFF's own GCPs; default: automatic "
+                          "matching")
     register.add_argument("-q", "--quiet", action="store_true", help="no progress display")
     add_option_arguments(register)
     register.set_defaults(func=cmd_register)
@@ -353,7 +449,9 @@ def build_parser() -> argparse.ArgumentParser:
     submit.add_argument("reference", help="reference image file")
     submit.add_argument("moving", help="moving image file")
     submit.add_argument("--out", required=True, help="output directory for the three results")
-    submit.add_argument("--points", help="conjugate points file (JSON or CSV)")
+    submit.add_argument("--points", help="conjugate points file (JSON or CSV pixel pairs, a "
+                        "QGIS .points file, or a GeoTIFF with the moving image's GCPs), or "
+                        "'gcps' for the moving GeoTIFF's own GCPs")
     submit.add_argument("--url", default=os.environ.get("PWLREG_URL", DEFAULT_URL),
                         help=f"service URL (default: PWLREG_URL or {DEFAULT_URL})")
     submit.add_argument("--idempotency-key", help="send this Idempotency-Key (safe retries)")

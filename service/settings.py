@@ -163,11 +163,45 @@ class Settings(BaseSettings):
         le=60,
         description="Timeout of one webhook attempt (connect, send, answer), in seconds.",
     )
+    href_allow: str | None = Field(
+        None,
+        description="Origins the service may read OGC API - Processes inputs given by reference "
+        "(href) from, comma-separated 'scheme://host[:port]' (http or https; without a port, "
+        "the scheme's default). A host name must resolve to public addresses only; a "
+        "loopback, private or other non-public address is allowed only when an entry names "
+        "it as an IP address. Default: none (inputs by reference are refused).",
+    )
+    href_timeout: float = Field(
+        30.0,
+        gt=0,
+        le=600,
+        description="Longest time the service spends reading one input given by reference "
+        "(connect, answer and the whole body), in seconds. Each input is also limited to "
+        "max_upload_bytes.",
+    )
     log_format: Literal["text", "json"] = Field(
         "text",
         description="Format of the log records of the API and worker processes: 'text' (one "
         "readable line each) or 'json' (one JSON object per line with time, level, logger, "
         "message and, for a record about a job, job_id and client).",
+    )
+    queue: Literal["local", "celery"] = Field(
+        "local",
+        description="Where registrations run: 'local', a pool of worker processes of the API "
+        "process (embedded mode), or 'celery', the workers started by 'pwlreg worker' on any "
+        "machine, reached through the broker (broker_url); the API process then runs none.",
+    )
+    broker_url: str | None = Field(
+        None,
+        description="Celery broker URL of the 'celery' queue, e.g. redis://redis:6379/0 or "
+        "amqp://user:password@rabbitmq:5672//.",
+    )
+    broker_queue: str = Field(
+        "pwlreg",
+        min_length=1,
+        max_length=200,
+        description="Name of the broker queue of the jobs (services sharing a broker use "
+        "different names).",
     )
     runner: str = Field(
         "pwlreg.core.pipeline:register",
@@ -179,6 +213,12 @@ class Settings(BaseSettings):
     def _lease_outlives_progress(self) -> Settings:
         if self.progress_interval * 2 > self.lease_seconds:
             raise ValueError("lease_seconds must be at least twice progress_interval")
+        return self
+
+    @model_validator(mode="after")
+    def _celery_needs_a_broker(self) -> Settings:
+        if self.queue == "celery" and not self.broker_url:
+            raise ValueError("queue 'celery' needs broker_url (PWLREG_BROKER_URL)")
         return self
 
     @property

@@ -60,3 +60,22 @@ def test_register_reports_bad_options_and_inputs() -> None:
         pwlreg.register(ref, mov, optimizer="no-such-optimizer")
     with pytest.raises(pwlreg.InputError):
         pwlreg.register(b"not an image", mov)
+
+
+def test_register_takes_the_moving_geotiffs_own_gcps(tmp_path: Path) -> None:
+    from rasterio.control import GroundControlPoint
+
+    from tests.core.gis import UTM, geotiff, make_pair, map_coords
+
+    pair = make_pair(bands=1)
+    gcps = [GroundControlPoint(row=y + 0.5, col=x + 0.5, x=mx, y=my)
+            for (x, y), (mx, my) in zip(pair.moving_points.tolist(),
+                                        map_coords(pair.reference_points).tolist(), strict=True)]
+    (tmp_path / "ref.tif").write_bytes(geotiff(pair.reference))
+    (tmp_path / "mov.tif").write_bytes(geotiff(pair.moving, transform=None, gcps=gcps,
+                                               gcp_crs=UTM))
+    options = {"epipolar_filter": False, "insert_vertices": "never"}
+    from_gcps = pwlreg.register(tmp_path / "ref.tif", tmp_path / "mov.tif", "gcps", **options)
+    from_arrays = pwlreg.register(tmp_path / "ref.tif", tmp_path / "mov.tif",
+                                  (pair.reference_points, pair.moving_points), **options)
+    np.testing.assert_array_equal(from_gcps.final_triangles, from_arrays.final_triangles)

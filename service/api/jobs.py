@@ -10,6 +10,7 @@ import math
 import re
 import shutil
 import uuid
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode
@@ -21,6 +22,7 @@ from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
 from pwlreg.core.errors import InputError
+from pwlreg.core.formats.points import is_gis_points
 from pwlreg.core.io import load_points, probe_image
 from pwlreg.core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
 from pwlreg.core.options import RegistrationOptions
@@ -42,7 +44,7 @@ from pwlreg.service.problems import (
     too_many_jobs,
 )
 from pwlreg.service.schemas import JobList, Link, StatusInfo
-from pwlreg.service.storage import IMAGES, LocalStorage
+from pwlreg.service.storage import IMAGES, Storage
 from pwlreg.service.store import IdempotencyConflict, Job, JobStatus
 from pwlreg.service.uploads import OVERHEAD_BYTES, ReceivedForm, receive_form
 from pwlreg.service.webhooks import AllowList, parse_callback, webhook_info
@@ -74,14 +76,14 @@ def status_info(job: Job, request: Request) -> StatusInfo:
     return build_status(job, _root(request), request.app.state.services.storage)
 
 
-def webhook_body(job: Job, storage: LocalStorage) -> bytes:
+def webhook_body(job: Job, storage: Storage) -> bytes:
     """The status document of ``job`` as a webhook sends it: the JSON of ``GET
     /v1/jobs/{id}``, with links absolute (the base URL the job was submitted to)."""
     base = (job.callback or {}).get("base_url") or ""
     return build_status(job, base, storage).model_dump_json().encode()
 
 
-def build_status(job: Job, root: str, storage: LocalStorage) -> StatusInfo:
+def build_status(job: Job, root: str, storage: Storage) -> StatusInfo:
     """The status document of ``job``, with links under ``root`` (a path prefix or a base
     URL), one per stored result."""
     href = f"{root}/v1/jobs/{job.id}"
@@ -113,11 +115,19 @@ def build_status(job: Job, root: str, storage: LocalStorage) -> StatusInfo:
     )
 
 
-def _get_job(services: Services, job_id: str, client: str | None) -> Job:
+def visible_job(services: Services, job_id: str, client: str | None) -> Job | None:
     """The job ``job_id`` if the client may see it: its own job, or any job without API keys
-    (``client`` None). Another client's job is answered exactly like a missing one."""
+    (``client`` None); None otherwise, so that another client's job is answered exactly like a
+    missing one."""
     job = services.store.get(job_id)
     if job is None or (client is not None and job.owner != client):
+        return None
+    return job
+
+
+def _get_job(services: Services, job_id: str, client: str | None) -> Job:
+    job = visible_job(services, job_id, client)
+    if job is None:
         raise not_found(f"no job {job_id!r}")
     return job
 
@@ -217,13 +227,17 @@ def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, 
     )
     has_points = "points" in form.parts
     try:
-        points = (
-            load_points(form.parts["points"].path.read_bytes(), field="points")
-            if has_points
-            else None
-        )
         sizes = {name: probe_image(form.parts[name].path, max_pixels, field=name)
                  for name in IMAGES}
+        points = None
+        if has_points:
+            data = form.parts["points"].path.read_bytes()
+            points = load_points(data, field="points", reference=form.parts["reference"].path,
+                                 moving=form.parts["moving"].path)
+            if is_gis_points(data):  # the worker reads pixel pairs, placed once, here
+                form.parts["points"].path.write_text(json.dumps(
+                    {"reference": points[0].tolist(), "moving": points[1].tolist()}
+                ))
     except InputError as exc:
         raise from_input_error(exc) from None
     if points is not None:
@@ -383,8 +397,10 @@ _FORM_SCHEMA = {
         "reference": {
             "type": "string",
             "format": "binary",
-            "description": "Reference image: PNG, JPEG, TIFF, PPM/PGM or BMP, 8 or 16 bit, grey "
-            "or colour.",
+            "description": "Reference image: PNG, JPEG, PPM/PGM or BMP (8 or 16 bit, grey or "
+            "colour) or TIFF/GeoTIFF (1-N bands of 8/16/32-bit integers or 32/64-bit floats, "
+            "nodata and masks honoured). A georeferenced reference adds registered.tif and "
+            "GeoJSON in its CRS.",
         },
         "moving": {
             "type": "string",
@@ -395,8 +411,11 @@ _FORM_SCHEMA = {
             "type": "string",
             "description": "Optional conjugate points, as a file part or a form field: JSON "
             '{"reference": [[x, y], ...], "moving": [[x, y], ...]} or CSV with the header '
-            "x,y,x_moving,y_moving. Pixel coordinates, x right, y down, (0, 0) the centre of "
-            "the top-left pixel. Without points, they are matched automatically.",
+            "x,y,x_moving,y_moving (pixel coordinates, x right, y down, (0, 0) the centre of "
+            "the top-left pixel); with a georeferenced reference also a QGIS Georeferencer "
+            ".points file or a GeoTIFF carrying the moving image's GCPs (map coordinates, "
+            "placed through the reference's geotransform). The format is sniffed. Without "
+            "points, they are matched automatically.",
             "example": '{"reference": [[10, 12], [200, 15], [105, 180]], '
             '"moving": [[12, 11], [203, 17], [104, 184]]}',
         },
@@ -478,21 +497,57 @@ async def submit_job(
         ),
     ] = None,
 ) -> StatusInfo:
-    key = scoped_key(_check_key(idempotency_key), client)
-    content_length = request.headers.get("content-length")
-    await run_in_threadpool(_precheck, services, client, key, content_length)
-    storage = services.storage
-    staging = await run_in_threadpool(storage.new_staging)
-    try:
-        form = await receive_form(
+    async def receive(staging: Path) -> ReceivedForm:
+        return await receive_form(
             request.headers.get("content-type"),
-            content_length,
+            request.headers.get("content-length"),
             request.stream(),
             staging,
             FORM_PARTS + WEBHOOK_PARTS,
             services.settings.max_upload_bytes,
             small_parts=WEBHOOK_PARTS,
         )
+
+    job, created = await submit(request, services, client, idempotency_key, receive)
+    response.headers["Location"] = job_href(request, job.id)
+    if not created:
+        response.headers["Idempotent-Replayed"] = "true"
+    return status_info(job, request)
+
+
+async def submit(
+    request: Request,
+    services: Services,
+    client: str | None,
+    idempotency_key: str | None,
+    receive: Callable[[Path], Awaitable[ReceivedForm]],
+) -> tuple[Job, bool]:
+    """Create a job from a request: the one way every API (``/v1``, OGC) submits a job.
+
+    The limits that need no input are checked first (queue, disk space, the declared
+    length), then ``receive(staging)`` stores the request's inputs as the parts of a form in
+    the empty directory ``staging`` (``reference``, ``moving``, ``points``, ``options``,
+    ``callback``, ``subscriber``), which are validated, moved to the job's storage, and the job
+    row created and queued (:func:`_accept`). The staging directory is removed in every case.
+
+    Returns
+    -------
+    job : Job
+    created : bool
+        False for the replay of a known ``Idempotency-Key``.
+
+    Raises
+    ------
+    Problem
+        As :func:`_accept`, ``receive``, and 507 when the disk is full.
+    """
+    key = scoped_key(_check_key(idempotency_key), client)
+    await run_in_threadpool(_precheck, services, client, key,
+                            request.headers.get("content-length"))
+    storage = services.storage
+    staging = await run_in_threadpool(storage.new_staging)
+    try:
+        form = await receive(staging)
         base_url = str(request.base_url).rstrip("/")
         job, created = await run_in_threadpool(
             _accept, services, form, staging, key, client, base_url
@@ -505,14 +560,12 @@ async def submit_job(
         ) from None
     finally:
         await run_in_threadpool(storage.discard, staging)
-    response.headers["Location"] = job_href(request, job.id)
     if created:
         services.metrics.job_submitted(client)
         log.info("job %s: accepted", job.id, extra=job_extra(job.id, client))
     else:
-        response.headers["Idempotent-Replayed"] = "true"
         log.info("job %s: idempotent replay", job.id, extra=job_extra(job.id, client))
-    return status_info(job, request)
+    return job, created
 
 
 # --- reading, listing, dismissing ------------------------------------------------------------
@@ -593,13 +646,18 @@ def get_job(
     responses={204: {"description": "Dismissed."}, **problem_responses(401, 404)},
 )
 def dismiss_job(job_id: str, services: ServicesDep, client: ClientDep) -> Response:
-    job = _get_job(services, job_id, client)
-    services.store.dismiss(job_id)
-    services.storage.remove(job_id)
-    log.info("job %s: dismissed by the client", job_id, extra=job_extra(job_id, job.owner))
+    dismiss(services, _get_job(services, job_id, client))
+    return Response(status_code=204)
+
+
+def dismiss(services: Services, job: Job) -> None:
+    """Dismiss ``job`` (every API does it this way): mark it dismissed, so that its worker
+    stops, remove its files and let the webhook loop announce it."""
+    services.store.dismiss(job.id)
+    services.storage.remove(job.id)
+    log.info("job %s: dismissed by the client", job.id, extra=job_extra(job.id, job.owner))
     if services.webhooks is not None:
         services.webhooks.wake()
-    return Response(status_code=204)
 
 
 # --- results -------------------------------------------------------------------------------
