@@ -36,7 +36,26 @@ THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"
 
 
 class JobQueue(ABC):
-    """Where accepted jobs wait for a worker."""
+    """Where accepted jobs wait for a worker.
+
+    Both implementations dispatch from a thread of the API process that a store poll or
+    :meth:`enqueue` wakes; this holds what they share.
+    """
+
+    def __init__(
+        self,
+        settings: Settings,
+        store: JobStore,
+        on_finished: Callable[[str], None] | None = None,
+        poll_interval: float = 1.0,
+    ) -> None:
+        self.settings = settings
+        self.store = store
+        self.on_finished = on_finished
+        self.poll_interval = poll_interval
+        self._wake = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._stopping = False
 
     @abstractmethod
     def start(self) -> None:
@@ -87,18 +106,12 @@ class LocalProcessQueue(JobQueue):
         on_finished: Callable[[str], None] | None = None,
         poll_interval: float = 1.0,
     ) -> None:
-        self.settings = settings
-        self.store = store
-        self.on_finished = on_finished
-        self.poll_interval = poll_interval
+        super().__init__(settings, store, on_finished, poll_interval)
         self._context = multiprocessing.get_context("spawn")
         self._stop_event = self._context.Event()
-        self._wake = threading.Event()
         self._lock = threading.Lock()
         self._inflight: dict[str, Future[str]] = {}
         self._executor: ProcessPoolExecutor | None = None
-        self._thread: threading.Thread | None = None
-        self._stopping = False
         self._broken = False
 
     # --- interface -----------------------------------------------------------------------------
@@ -266,17 +279,11 @@ class CeleryQueue(JobQueue):
         # Celery is an optional dependency (the extra 'scaleout'): imported in this mode only.
         from pwlreg.service.celery_app import TASK, make_celery, visibility_timeout
 
-        self.settings = settings
-        self.store = store
-        self.on_finished = on_finished
-        self.poll_interval = poll_interval
+        super().__init__(settings, store, on_finished, poll_interval)
         self.app = make_celery(settings)
         self._task = TASK
         self._resend_after = timedelta(seconds=visibility_timeout(settings))
-        self._wake = threading.Event()
         self._watching: set[str] = set()
-        self._thread: threading.Thread | None = None
-        self._stopping = False
         self._broker_down = False
 
     def start(self) -> None:
