@@ -39,10 +39,25 @@ def has_images(result: RegistrationResult, sources: Sources) -> bool:
 # --- pictures ----------------------------------------------------------------------------------
 
 
+def _reference_vertices(result: RegistrationResult, sources: Sources) -> np.ndarray:
+    """The reference vertices in the pixels of ``sources.reference``, which is a reduced level
+    when the search ran on levels (:mod:`pwlreg.core.scaled`)."""
+    return _in_picture(result.reference_vertices, result.reference_size, sources.reference)
+
+
+def _moving_vertices(result: RegistrationResult, sources: Sources) -> np.ndarray:
+    """The moving vertices in the pixels of ``sources.moving``."""
+    return _in_picture(result.moving_vertices, result.moving_size, sources.moving)
+
+
+def _in_picture(points: np.ndarray, size: tuple[int, int], picture: np.ndarray) -> np.ndarray:
+    return render.scale_points(points, size, (picture.shape[1], picture.shape[0]))
+
+
 def mesh_reference_png(result: RegistrationResult, sources: Sources) -> bytes:
     """Both meshes on the reference image (:func:`render.mesh_overlay`)."""
     return _png(render.mesh_overlay(
-        sources.reference, result.reference_vertices, result.initial_triangles,
+        sources.reference, _reference_vertices(result, sources), result.initial_triangles,
         result.final_triangles, extrapolated=result.extrapolated,
     ), sources)
 
@@ -50,7 +65,7 @@ def mesh_reference_png(result: RegistrationResult, sources: Sources) -> bytes:
 def mesh_moving_png(result: RegistrationResult, sources: Sources) -> bytes:
     """Both meshes on the moving image (:func:`render.mesh_overlay`)."""
     return _png(render.mesh_overlay(
-        sources.moving, result.moving_vertices, result.initial_triangles,
+        sources.moving, _moving_vertices(result, sources), result.initial_triangles,
         result.final_triangles, extrapolated=result.extrapolated,
     ), sources)
 
@@ -60,8 +75,8 @@ def _comparison(result: RegistrationResult, sources: Sources, combine) -> bytes:
     reference = render.to_display(sources.reference, shown)
     panels = [
         combine(reference, render.registered_preview(
-            sources.moving, result.reference_vertices, result.moving_vertices, triangles,
-            result.reference_size, shown,
+            sources.moving, result.reference_vertices, _moving_vertices(result, sources),
+            triangles, result.reference_size, shown,
         ))
         for triangles in (result.initial_triangles, result.final_triangles)
     ]
@@ -84,7 +99,7 @@ def consistency_png(result: RegistrationResult, sources: Sources) -> bytes:
     """The final mesh's triangles coloured by their consistency score
     (:func:`render.consistency_map`)."""
     return _png(render.consistency_map(
-        sources.reference, result.reference_vertices, result.final_triangles,
+        sources.reference, _reference_vertices(result, sources), result.final_triangles,
         result.quality.triangle_scores,
     ), sources)
 
@@ -98,8 +113,8 @@ def preview_reference_png(result: RegistrationResult, sources: Sources) -> bytes
 def _preview_registered(result: RegistrationResult, sources: Sources,
                         triangles: np.ndarray) -> bytes:
     return _png(render.registered_preview(
-        sources.moving, result.reference_vertices, result.moving_vertices, triangles,
-        result.reference_size, render.fit(result.reference_size),
+        sources.moving, result.reference_vertices, _moving_vertices(result, sources),
+        triangles, result.reference_size, render.fit(result.reference_size),
     ), sources)
 
 
@@ -174,7 +189,7 @@ def _vertex_colours(result: RegistrationResult, sources: Sources) -> np.ndarray 
     if sources.reference is None:
         return None
     h, w = sources.reference.shape[:2]
-    xy = np.round(result.reference_vertices).astype(np.int64)
+    xy = np.round(_reference_vertices(result, sources)).astype(np.int64)
     samples = sources.reference[np.clip(xy[:, 1], 0, h - 1), np.clip(xy[:, 0], 0, w - 1)]
     bgr = render.to_display(samples.reshape(1, len(xy), -1) if samples.ndim > 1
                             else samples.reshape(1, -1))

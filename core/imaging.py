@@ -12,6 +12,8 @@ Pixel coordinates: x to the right, y down, (0, 0) is the centre of the top-left 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -25,7 +27,7 @@ RESCALE_PERCENTILES = (0.5, 99.5)
 """Percentiles of the valid samples mapped to 0 and 255 by :func:`matching_image`'s rescale."""
 _RESCALE_SAMPLES = 1 << 20
 """Valid samples (on a regular grid) the percentiles are estimated from."""
-_PICTURE_BAND = {1: (0,), 3: (2, 1, 0), 4: (2, 1, 0, 3)}
+PICTURE_BAND = {1: (0,), 3: (2, 1, 0), 4: (2, 1, 0, 3)}
 """Array channel of file band 1, 2, ... of a picture (OpenCV keeps colour as BGR(A))."""
 
 
@@ -73,7 +75,7 @@ def is_picture(image: np.ndarray) -> bool:
         isinstance(image, np.ndarray)
         and not isinstance(image, np.ma.MaskedArray)
         and image.dtype in SUPPORTED_DTYPES
-        and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in _PICTURE_BAND))
+        and (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in PICTURE_BAND))
     )
 
 
@@ -90,7 +92,7 @@ def file_bands(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     data = np.ma.getdata(image)
     bands = data if data.ndim == 3 else data[:, :, None]
     if is_picture(image):
-        return bands[:, :, list(_PICTURE_BAND[bands.shape[2]])], None
+        return bands[:, :, list(PICTURE_BAND[bands.shape[2]])], None
     mask = np.ma.getmask(image)
     invalid = None
     if mask is not np.ma.nomask:
@@ -146,6 +148,13 @@ def matching_image(image: np.ndarray, band: str = LUMINANCE, field: str = "image
     InputError
         Not an image, a band it does not have, or no valid pixel.
     """
+    return matching_picture(image, band, field)[0]
+
+
+def matching_picture(image: np.ndarray, band: str = LUMINANCE, field: str = "image"
+                     ) -> tuple[np.ndarray, PictureRecipe | None]:
+    """:func:`matching_image` and, for a raster, the :class:`PictureRecipe` that made it (None
+    for a picture), to make the same picture of other windows of the raster."""
     check_raster(image, field)
     count = 1 if image.ndim == 2 else image.shape[2]
     number = None if band == LUMINANCE else int(band)
@@ -155,38 +164,94 @@ def matching_image(image: np.ndarray, band: str = LUMINANCE, field: str = "image
         )
     if is_picture(image):
         if number is None or image.ndim == 2:
-            return image
-        return np.ascontiguousarray(image[:, :, _PICTURE_BAND[count][number - 1]])
+            return image, None
+        return np.ascontiguousarray(image[:, :, PICTURE_BAND[count][number - 1]]), None
     bands, valid = file_bands(image)
-    chosen = range(count) if number is None else (number - 1,)
-    grey = np.zeros(bands.shape[:2], np.float32)
-    for b in chosen:
-        grey += _rescaled(bands[:, :, b], valid)
+    if valid is not None and not valid.any():
+        raise InputError(f"{field} has no valid pixel (all nodata or masked)", field)
+    recipe = _recipe(bands, valid, number)
+    return apply_recipe(recipe, bands, valid, fill=True), recipe
+
+
+@dataclass(frozen=True)
+class PictureRecipe:
+    """How :func:`matching_image` turns a raster's bands into its 8-bit picture, kept so that
+    the same picture can be made window by window (:mod:`pwlreg.core.tiled`).
+
+    Attributes
+    ----------
+    chosen : tuple of int
+        0-based bands averaged (one band, or all of them for ``"luminance"``).
+    limits : tuple of (float, float)
+        Per chosen band, the samples mapped to 0 and 1 (:data:`RESCALE_PERCENTILES`).
+    grey_limits : (float, float) or None
+        The same for the mean of several bands, None for one band.
+    """
+
+    chosen: tuple[int, ...]
+    limits: tuple[tuple[float, float], ...]
+    grey_limits: tuple[float, float] | None
+
+
+def _recipe(bands: np.ndarray, valid: np.ndarray | None, number: int | None) -> PictureRecipe:
+    """The :class:`PictureRecipe` of a raster's bands (band ``number``, 1-based, or None for
+    the luminance), its percentiles estimated on the valid samples."""
+    chosen = tuple(range(bands.shape[2])) if number is None else (number - 1,)
+    limits = tuple(_limits(bands[:, :, b], valid) for b in chosen)
+    grey_limits = None
     if len(chosen) > 1:
-        grey = _rescaled(grey, valid)
-    if valid is not None:
-        if not valid.any():
-            raise InputError(f"{field} has no valid pixel (all nodata or masked)", field)
-        grey = fill_invalid(grey, valid)
+        grey = _grey(bands, chosen, limits)
+        grey_limits = _limits(grey, valid)
+    return PictureRecipe(chosen, limits, grey_limits)
+
+
+def apply_recipe(recipe: PictureRecipe, bands: np.ndarray, valid: np.ndarray | None, *,
+                 fill: bool = False) -> np.ndarray:
+    """The 8-bit picture of ``bands`` ``(H, W, C)`` in file order: grey, or BGRA (grey in B, G
+    and R, alpha 0 where invalid) when ``valid`` marks invalid pixels; with ``fill`` the
+    invalid pixels hold :func:`fill_invalid`'s smooth extension, else 0."""
+    grey = _grey(bands, recipe.chosen, recipe.limits)
+    if recipe.grey_limits is not None:
+        grey = _scaled(grey, *recipe.grey_limits)
+    if valid is not None and valid.any():
+        grey = fill_invalid(grey, valid) if fill else np.where(valid, grey, 0.0)
     grey8 = np.round(grey * 255.0).astype(np.uint8)
     if valid is None:
         return grey8
     return np.dstack([grey8, grey8, grey8, valid.astype(np.uint8) * np.uint8(255)])
 
 
-def _rescaled(band: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
-    """``band`` as float32 in [0, 1], its valid samples' percentiles mapped to 0 and 1."""
+def _grey(bands: np.ndarray, chosen: tuple[int, ...],
+          limits: tuple[tuple[float, float], ...]) -> np.ndarray:
+    grey = np.zeros(bands.shape[:2], np.float32)
+    for b, (lo, hi) in zip(chosen, limits, strict=True):
+        grey += _scaled(bands[:, :, b], lo, hi)
+    return grey
+
+
+def _limits(band: np.ndarray, valid: np.ndarray | None) -> tuple[float, float]:
+    """The :data:`RESCALE_PERCENTILES` of ``band``'s valid samples (up to 2**20 of them)."""
     step = max(1, int(np.ceil(np.sqrt(band.size / _RESCALE_SAMPLES))))
     sample = band[::step, ::step]
     sample = sample[valid[::step, ::step]] if valid is not None else sample.ravel()
     sample = sample[np.isfinite(sample)] if sample.dtype.kind == "f" else sample
     if sample.size == 0:
-        return np.zeros(band.shape, np.float32)
+        return 0.0, 0.0
     lo, hi = np.percentile(sample, RESCALE_PERCENTILES)
+    return float(lo), float(hi)
+
+
+def _scaled(band: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """``band`` as float32 in [0, 1], ``lo`` and ``hi`` mapped to 0 and 1."""
     span = float(hi - lo) or 1.0
     with np.errstate(invalid="ignore"):
         out = (band.astype(np.float32) - np.float32(lo)) * np.float32(1.0 / span)
     return np.clip(np.nan_to_num(out, copy=False, nan=0.0), 0.0, 1.0, out=out)
+
+
+def _rescaled(band: np.ndarray, valid: np.ndarray | None) -> np.ndarray:
+    """``band`` as float32 in [0, 1], its valid samples' percentiles mapped to 0 and 1."""
+    return _scaled(band, *_limits(band, valid))
 
 
 def fill_invalid(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

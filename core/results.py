@@ -10,16 +10,17 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pwlreg.core import figures, render
-from pwlreg.core.formats import geojson, geotiff
+from pwlreg.core.formats import geojson, geotiff, png
 from pwlreg.core.imaging import is_picture, matching_image
-from pwlreg.core.io import convergence_document, encode_png, mesh_document
+from pwlreg.core.io import convergence_document, mesh_document
+from pwlreg.core.scaled import ScaledResult
 
 if TYPE_CHECKING:
     from pwlreg.core.pipeline import RegistrationResult
@@ -103,10 +104,6 @@ def _write_json(document: Callable[..., dict], indent: int | None = None,
     return write
 
 
-def _write_registered(result: RegistrationResult, sources: Sources, path: Path) -> None:
-    path.write_bytes(encode_png(result.registered, threads=sources.threads))
-
-
 def _write_bytes(encode: Callable[[RegistrationResult, Sources], bytes]) -> Writer:
     def write(result: RegistrationResult, sources: Sources, path: Path) -> None:
         path.write_bytes(encode(result, sources))
@@ -138,7 +135,7 @@ RESULTS: dict[str, ResultFormat] = {
             "Moving image registered onto the reference (alpha = inside the mesh)",
             "The moving image warped onto the reference, PNG with alpha (opaque inside the "
             "mesh).",
-            _write_registered,
+            png.write_registered,
         ),
         ResultFormat(
             "registered_geotiff", "registered.tif", "registered.tif", geotiff.MEDIA_TYPE,
@@ -302,7 +299,7 @@ def write_outputs(
     dict
         The written files' paths by result name.
     """
-    sources = sources or Sources(threads=threads)
+    sources = _completed(sources or Sources(threads=threads), result)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = {}
@@ -312,3 +309,18 @@ def write_outputs(
             fmt.write(result, sources, path)
             written[fmt.name] = path
     return written
+
+
+def _completed(sources: Sources, result: RegistrationResult) -> Sources:
+    """``sources`` with what a result registered on levels brings: its levels as the pictures
+    (the figures are drawn on them) and the files it read window by window."""
+    if not isinstance(result, ScaledResult):
+        return sources
+    return replace(
+        sources,
+        reference=sources.reference if sources.reference is not None
+        else result.reference_level,
+        moving=sources.moving if sources.moving is not None else result.moving_level,
+        reference_path=sources.reference_path or result.paths[0],
+        moving_path=sources.moving_path or result.paths[1],
+    )

@@ -12,7 +12,10 @@ Pass ``sources=pwlreg.Sources(reference_array, moving_array, reference_path, mov
 :func:`write_outputs` for the results drawn on the inputs (the pictures) or read from their files
 (``registered.tif`` of a georeferenced reference).
 
-Images are paths, encoded bytes or OpenCV-layout arrays (grey, BGR or BGRA; uint8 or uint16);
+Images are paths, encoded bytes or OpenCV-layout arrays (grey, BGR or BGRA; uint8 or uint16;
+or rasters as :mod:`pwlreg.core.imaging` defines them). Images over 16.8 MP are registered on a
+reduced level and the geometry refined at full resolution (:mod:`pwlreg.core.scaled`); a TIFF
+path that large is read window by window, so the memory does not grow with it;
 points are ``(reference (N, 2), moving (N, 2))`` arrays in pixels or a points file (JSON or
 CSV, as the service takes). Options are keyword arguments named as in
 :class:`RegistrationOptions` (the same names as the service's ``options``).
@@ -20,6 +23,7 @@ CSV, as the service takes). Options are keyword arguments named as in
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -32,12 +36,13 @@ from pwlreg.core.errors import (
     RegistrationError,
     UnreliableResultError,
 )
+from pwlreg.core.formats.geotiff import open_image
 from pwlreg.core.formats.points import GCPS_KEYWORD
 from pwlreg.core.io import load_points, read_image
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import STAGES, RegistrationResult
-from pwlreg.core.pipeline import register as _register
 from pwlreg.core.results import Sources, write_outputs
+from pwlreg.core.scaled import register as _register
 
 try:
     from importlib.metadata import PackageNotFoundError, version
@@ -65,8 +70,13 @@ ImageLike = np.ndarray | bytes | str | os.PathLike
 PointsLike = tuple[np.ndarray, np.ndarray] | bytes | str | os.PathLike
 
 
-def _image(value: ImageLike, field: str) -> np.ndarray:
-    return value if isinstance(value, np.ndarray) else read_image(value, field=field)
+def _image(value: ImageLike, field: str, files: contextlib.ExitStack) -> Any:
+    if isinstance(value, np.ndarray):
+        return value
+    if isinstance(value, bytes):
+        return read_image(value, field=field)
+    image = open_image(value, field=field)
+    return files.enter_context(image) if hasattr(image, "close") else image
 
 
 def _points(value: PointsLike | None, reference: ImageLike, moving: ImageLike
@@ -122,6 +132,7 @@ def register(
     merged = (options.model_dump(exclude_unset=True) if isinstance(options, RegistrationOptions)
               else dict(options or {}))
     merged.update(option_values)
-    return _register(_image(reference, "reference"), _image(moving, "moving"),
-                     points=_points(points, reference, moving), options=merged,
-                     progress=progress)
+    with contextlib.ExitStack() as files:
+        return _register(_image(reference, "reference", files), _image(moving, "moving", files),
+                         points=_points(points, reference, moving), options=merged,
+                         progress=progress)

@@ -9,6 +9,7 @@ in scale-out mode. The option flags of ``register`` and
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -134,9 +135,11 @@ class ProgressBar:
 def cmd_register(args: argparse.Namespace) -> int:
     """Register two image files locally and write the three result files."""
     from pwlreg.core.errors import InputError, UnreliableResultError
-    from pwlreg.core.io import load_points, read_image
-    from pwlreg.core.pipeline import STAGES, register
+    from pwlreg.core.formats.geotiff import open_image
+    from pwlreg.core.io import load_points
+    from pwlreg.core.pipeline import STAGES
     from pwlreg.core.results import Sources, write_outputs
+    from pwlreg.core.scaled import register
 
     bar = ProgressBar() if not args.quiet else None
     spans = {stage: i for i, stage in enumerate(STAGES)}
@@ -147,14 +150,18 @@ def cmd_register(args: argparse.Namespace) -> int:
 
     try:
         options = RegistrationOptions(**options_from_args(args))
-        reference = read_image(args.reference, field="reference")
-        moving = read_image(args.moving, field="moving")
-        points = None
-        if args.points:
-            data = GCPS_KEYWORD if _own_gcps(args.points) else Path(args.points).read_bytes()
-            points = load_points(data, reference=args.reference, moving=args.moving)
-        result = register(reference, moving, points=points, options=options, progress=progress)
-        write_outputs(result, args.out, sources=Sources(reference, moving, Path(args.reference),
+        with contextlib.ExitStack() as stack:
+            # A large TIFF is read window by window (pwlreg.core.scaled), anything else whole.
+            reference = _closing(stack, open_image(args.reference, field="reference"))
+            moving = _closing(stack, open_image(args.moving, field="moving"))
+            points = None
+            if args.points:
+                data = GCPS_KEYWORD if _own_gcps(args.points) else Path(args.points).read_bytes()
+                points = load_points(data, reference=args.reference, moving=args.moving)
+            result = register(reference, moving, points=points, options=options,
+                              progress=progress)
+        pictures = (None if hasattr(i, "close") else i for i in (reference, moving))
+        write_outputs(result, args.out, sources=Sources(*pictures, Path(args.reference),
                                                         Path(args.moving)))
     except UnreliableResultError as exc:
         raise CommandError(str(exc), UNRELIABLE_EXIT) from None
@@ -171,6 +178,11 @@ def cmd_register(args: argparse.Namespace) -> int:
             bar.close()
     print(result.summary())
     return 0
+
+
+def _closing(stack: contextlib.ExitStack, image: Any) -> Any:
+    """``image``, closed with ``stack`` when it is a file read window by window."""
+    return stack.enter_context(image) if hasattr(image, "close") else image
 
 
 # --- submit ----------------------------------------------------------------------------------

@@ -66,8 +66,17 @@ class Settings(BaseSettings):
     max_pixels: int = Field(
         40_000_000,
         ge=4,
-        description="Largest accepted image, in pixels (width x height), checked from the image "
-        "header before decoding (decompression bombs are refused with 422).",
+        description="Largest accepted image decoded whole, in pixels (width x height), checked "
+        "from the image header before decoding (decompression bombs are refused with 422).",
+    )
+    max_raster_pixels: int = Field(
+        1_000_000_000,
+        ge=4,
+        le=2**30,
+        description="Largest accepted TIFF (GeoTIFF) over 16.8 MP, in pixels: such rasters are "
+        "read window by window and registered on a reduced level, in a memory that does not "
+        "grow with them (about 0.5-1 GB), so this limit bounds a job's time, not its memory. "
+        "Their upload must also fit max_upload_bytes.",
     )
     job_time_limit: float = Field(
         1800.0,
@@ -204,7 +213,7 @@ class Settings(BaseSettings):
         "different names).",
     )
     runner: str = Field(
-        "pwlreg.core.pipeline:register",
+        "pwlreg.core.scaled:register",
         description="Import path (module:function) of the registration function the workers "
         "call. Change it only to wrap core, e.g. in tests.",
     )

@@ -11,6 +11,7 @@ or the service is shutting down, which stops the registration at its next progre
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import os
@@ -31,7 +32,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from pwlreg.core.errors import InputError, NotEnoughPointsError, UnreliableResultError
-from pwlreg.core.io import load_points, read_image
+from pwlreg.core.formats.geotiff import RasterFile, open_image
+from pwlreg.core.io import load_points
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import refused
 from pwlreg.core.results import Sources, write_outputs
@@ -310,16 +312,20 @@ def run_job(job_id: str, context: WorkerContext) -> str:
 
     try:
         with reporter.running():
-            reference, moving = _read_images(context, job_id)
-            points = None
-            if job.has_points:
-                points = load_points(storage.points_path(job_id).read_bytes(), field="points")
-            options = RegistrationOptions.model_validate(job.options)
-            runner = context.get_runner()
-            result = runner(reference, moving, points=points, options=options, progress=reporter)
+            with contextlib.ExitStack() as files:
+                reference, moving = _read_images(context, job_id, files)
+                points = None
+                if job.has_points:
+                    points = load_points(storage.points_path(job_id).read_bytes(),
+                                         field="points")
+                options = RegistrationOptions.model_validate(job.options)
+                runner = context.get_runner()
+                result = runner(reference, moving, points=points, options=options,
+                                progress=reporter)
             reporter.check()
             work = storage.work_dir(job_id, owner)
-            sources = Sources(reference, moving, storage.image_path(job_id, "reference"),
+            pictures = (i if isinstance(i, np.ndarray) else None for i in (reference, moving))
+            sources = Sources(*pictures, storage.image_path(job_id, "reference"),
                               storage.image_path(job_id, "moving"), settings.worker_threads)
             write_outputs(result, work, sources=sources)
         reporter.beat()  # still ours (not dismissed) before the results become visible?
@@ -375,24 +381,32 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         storage.discard_attempts(job_id)  # attempts that did not publish leave nothing behind
 
 
-def _read_images(context: WorkerContext, job_id: str) -> list[np.ndarray]:
+def _read_images(context: WorkerContext, job_id: str, files: contextlib.ExitStack
+                 ) -> list[np.ndarray | RasterFile]:
     """Decode the reference and the moving image of ``job_id`` (both at once if the worker has
-    more than one thread; OpenCV's decoders release the GIL). The API checked their headers and
-    structure; a file that still fails to decode raises :class:`InputError` naming it."""
+    more than one thread; OpenCV's decoders release the GIL), or open them for reading window
+    by window when they are large TIFFs (closed with ``files``). The API checked their headers
+    and structure; a file that still fails to decode raises :class:`InputError` naming it."""
     settings = context.settings
 
-    def read(name: str) -> np.ndarray:
+    def read(name: str) -> np.ndarray | RasterFile:
         path = context.storage.image_path(job_id, name)
         # Jobs accepted before 2026-11-22 kept their inputs decoded, as <name>.npy.
         legacy = path.with_name(f"{name}.npy")
         if not path.exists() and legacy.exists():
             return np.load(legacy, allow_pickle=False)
-        return read_image(path, settings.max_pixels, field=name)
+        return open_image(path, max_pixels=settings.max_pixels,
+                          max_raster_pixels=settings.max_raster_pixels, field=name)
 
     if settings.worker_threads < 2:
-        return [read(name) for name in IMAGES]
-    with ThreadPoolExecutor(len(IMAGES)) as pool:
-        return list(pool.map(read, IMAGES))
+        images = [read(name) for name in IMAGES]
+    else:
+        with ThreadPoolExecutor(len(IMAGES)) as pool:
+            images = list(pool.map(read, IMAGES))
+    for image in images:
+        if isinstance(image, RasterFile):
+            files.enter_context(image)
+    return images
 
 
 def _settle_lost(job_id: str, context: WorkerContext) -> str:
@@ -426,7 +440,7 @@ def init_process(
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:
         _PROCESS_CONTEXT.get_runner()  # import core once, before the first job
-        if settings.runner == "pwlreg.core.pipeline:register":
+        if settings.runner in ("pwlreg.core.scaled:register", "pwlreg.core.pipeline:register"):
             from pwlreg.core.pipeline import warm_up
 
             warm_up()  # compile or load the numba kernels now, not in the first job

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 import rasterio
 from rasterio.crs import CRS
@@ -29,8 +28,8 @@ from rasterio.transform import Affine
 from rasterio.windows import Window
 
 from pwlreg.core.errors import InputError, UnsupportedMediaError
-from pwlreg.core.imaging import RASTER_DTYPES, file_bands, is_picture
-from pwlreg.core.raster import affine_maps, expand, rasterize
+from pwlreg.core.imaging import RASTER_DTYPES, is_picture
+from pwlreg.core.tiled import LEVEL_PIXELS, ArrayBands, BandSource, reduce_area, warp_tiles
 
 if TYPE_CHECKING:
     from pwlreg.core.pipeline import RegistrationResult
@@ -44,9 +43,11 @@ _BLOCK = 512
 """Tile side of registered.tif."""
 _OVERVIEW_SIDE = 1024
 """registered.tif gets overviews (2, 4, ...) until its longer side is at most this."""
-_REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
-"""Sample types OpenCV's remap takes as they are (32-bit integers go through float64)."""
 _COLOUR = (ColorInterp.red, ColorInterp.green, ColorInterp.blue)
+CACHE_BYTES = 64 * 1024 * 1024
+_LEVEL_WINDOW = 2048
+"""Side (pixels) of the windows :meth:`RasterFile.level` reads."""
+"""GDAL's block cache while a :class:`RasterFile` is open (its default grows with the RAM)."""
 
 
 def is_tiff(head: bytes) -> bool:
@@ -134,35 +135,127 @@ def read_tiff(source: bytes | str | os.PathLike, field: str) -> np.ndarray:
         try:
             if ds.count == 1 and ds.colorinterp[0] == ColorInterp.palette:
                 return _palette(ds)
-            data = np.moveaxis(ds.read(), 0, -1)
-            masked = any(
-                {f.name for f in flags} != {"all_valid"} for flags in ds.mask_flag_enums
-            )
-            invalid = ds.dataset_mask() == 0 if masked else None
+            layout = _Layout.of(ds)
+            data = np.moveaxis(ds.read(layout.indexes), 0, -1)
+            invalid = ds.dataset_mask() == 0 if layout.masked else None
         except RasterioError as exc:
             raise UnsupportedMediaError(
                 f"{field} could not be decoded (damaged pixel data?): {exc}", field
             ) from exc
-        interp = list(ds.colorinterp)
-    alpha = [i for i, c in enumerate(interp) if c == ColorInterp.alpha]
-    if alpha and len(alpha) < data.shape[2]:
-        data = np.delete(data, alpha, axis=2)
-        interp = [c for c in interp if c != ColorInterp.alpha]
-    if data.dtype.kind == "f":
-        nan = ~np.isfinite(data).all(axis=2)
-        invalid = nan if invalid is None else invalid | nan
-    if invalid is not None and not invalid.any():
-        invalid = None
-    bands = data.shape[2]
-    colour = bands == 3 and tuple(interp) == _COLOUR
-    if data.dtype in (np.uint8, np.uint16) and invalid is None and (bands == 1 or colour):
-        return data[:, :, 0] if bands == 1 else np.ascontiguousarray(data[:, :, ::-1])
-    if invalid is None:
-        return np.ma.MaskedArray(data[:, :, 0] if bands == 1 else data, mask=np.ma.nomask)
-    if bands == 1:
-        return np.ma.MaskedArray(data[:, :, 0], mask=invalid)
-    return np.ma.MaskedArray(data, mask=np.repeat(invalid[:, :, None], bands, axis=2))
+    return layout.image(data, invalid)
 
+
+@dataclass(frozen=True)
+class _Layout:
+    """Which bands of a TIFF are data (an alpha band is not: its meaning is in the mask), and
+    how they become a picture or a raster (:func:`read_tiff`)."""
+
+    indexes: list[int]
+    colour: bool
+    masked: bool
+
+    @classmethod
+    def of(cls, ds: rasterio.DatasetReader) -> _Layout:
+        interp = list(ds.colorinterp)
+        alpha = [i for i, c in enumerate(interp) if c == ColorInterp.alpha]
+        if len(alpha) == len(interp):
+            alpha = []
+        kept = [c for i, c in enumerate(interp) if i not in alpha]
+        return cls(
+            indexes=[i + 1 for i in range(ds.count) if i not in alpha],
+            colour=tuple(kept) == _COLOUR,
+            masked=any({f.name for f in flags} != {"all_valid"} for flags in ds.mask_flag_enums),
+        )
+
+    def image(self, data: np.ndarray, invalid: np.ndarray | None) -> np.ndarray:
+        """The picture or raster of ``data`` ``(H, W, C)`` (these bands, file order)."""
+        if data.dtype.kind == "f":
+            nan = ~np.isfinite(data).all(axis=2)
+            invalid = nan if invalid is None else invalid | nan
+        if invalid is not None and not invalid.any():
+            invalid = None
+        bands = data.shape[2]
+        if data.dtype in (np.uint8, np.uint16) and invalid is None and (bands == 1 or self.colour):
+            return data[:, :, 0] if bands == 1 else np.ascontiguousarray(data[:, :, ::-1])
+        if invalid is None:
+            return np.ma.MaskedArray(data[:, :, 0] if bands == 1 else data, mask=np.ma.nomask)
+        if bands == 1:
+            return np.ma.MaskedArray(data[:, :, 0], mask=invalid)
+        return np.ma.MaskedArray(data, mask=np.repeat(invalid[:, :, None], bands, axis=2))
+
+
+class RasterFile:
+    """A TIFF file read window by window (a :class:`pwlreg.core.tiled.BandSource`), for rasters
+    too large to decode at once.
+
+    Its bands and validity are those :func:`read_tiff` gives (alpha band dropped, GDAL's mask,
+    NaN); :meth:`level` reads it reduced, averaging, in :func:`read_tiff`'s layout. GDAL's block
+    cache is bounded (:data:`CACHE_BYTES`), so the memory does not grow with the file. A
+    palette TIFF has no window reader: :func:`pwlreg.core.io.open_image` decodes those whole.
+
+    Parameters
+    ----------
+    path : path
+        A TIFF already checked by :func:`probe_tiff`.
+    field : str
+        Name used in error messages.
+    """
+
+    def __init__(self, path: str | os.PathLike, field: str = "image") -> None:
+        self.path, self.field = Path(path), field
+        self._stack = contextlib.ExitStack()
+        self._stack.enter_context(rasterio.Env(GDAL_CACHEMAX=CACHE_BYTES))
+        self._ds = self._stack.enter_context(open_tiff(self.path, field))
+        self._layout = _Layout.of(self._ds)
+        self.height, self.width = self._ds.height, self._ds.width
+        self.count = len(self._layout.indexes)
+        self.dtype = np.dtype(self._ds.dtypes[0])
+
+    def __enter__(self) -> RasterFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the file."""
+        self._stack.close()
+
+    def read(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """Columns ``x0:x1`` and rows ``y0:y1``: bands ``(h, w, count)`` in file order and
+        validity (None when all valid)."""
+        window = Window(x0, y0, x1 - x0, y1 - y0)
+        try:
+            data = np.moveaxis(self._ds.read(self._layout.indexes, window=window), 0, -1)
+            valid = self._ds.dataset_mask(window=window) != 0 if self._layout.masked else None
+        except RasterioError as exc:
+            raise UnsupportedMediaError(
+                f"{self.field} could not be decoded (damaged pixel data?): {exc}", self.field
+            ) from exc
+        if data.dtype.kind == "f":
+            finite = np.isfinite(data).all(axis=2)
+            valid = finite if valid is None else valid & finite
+        return data, (None if valid is None or valid.all() else valid)
+
+    def level(self, factor: int) -> np.ndarray:
+        """The file reduced ``factor`` times (:meth:`pwlreg.core.tiled.BandSource.level`: a
+        pixel is invalid when less than half of its block is valid), as :func:`read_tiff` would
+        give it. Read in windows of about 2048 pixels, each decoded once."""
+        h, w = self.height // factor, self.width // factor
+        out = np.empty((h, w, self.count), self.dtype)
+        invalid = np.zeros((h, w), bool)
+        step = factor * max(1, round(_LEVEL_WINDOW / factor))
+        for y0 in range(0, h * factor, step):
+            y1 = min(y0 + step, h * factor)
+            for x0 in range(0, w * factor, step):
+                x1 = min(x0 + step, w * factor)
+                data, valid = self.read(x0, y0, x1, y1)
+                rows = slice(y0 // factor, y1 // factor)
+                cols = slice(x0 // factor, x1 // factor)
+                out[rows, cols] = reduce_area(data, factor)
+                if valid is not None:
+                    invalid[rows, cols] = reduce_area(valid.astype(np.float32), factor) < 0.5
+        return self._layout.image(out, invalid)
 
 def _palette(ds: rasterio.DatasetReader) -> np.ndarray:
     colours = ds.colormap(1)
@@ -271,53 +364,82 @@ def write_registered(result: RegistrationResult, sources: Sources, path: Path) -
     with a predictor.
 
     Pixels outside the mesh, mapped outside the moving image, or next to an invalid moving
-    pixel are nodata: the moving file's nodata value, else NaN for float samples, else 0 (so
-    are pixel centres lying exactly on the mesh's outline, which registered.png gives to their
-    triangle in a second pass; with ``extent="frame"`` the outline is the frame's border).
-    Resampling is bilinear (OpenCV's ``remap``, rounded for integer samples) through the mesh's
-    piecewise-affine maps with the fill rule of :mod:`core.raster`, one tile at a time (each
-    tile written and compressed once; the work memory is a few tiles). Files whose longer side
-    exceeds 1024 pixels get overviews (averages, factors 2, 4, ...) down to that size.
+    pixel are nodata: the moving file's nodata value, else NaN for float samples, else 0.
+    Resampling is :func:`pwlreg.core.tiled.warp_tiles` (bilinear, the pixels of registered.png)
+    from the full-resolution moving image (:func:`moving_source`: a large TIFF is read window
+    by window), one 1024-pixel tile at a time, each written and compressed once: the work
+    memory is a few tiles whatever the size. Files whose longer side exceeds 1024 pixels get
+    overviews (averages, factors 2, 4, ...) down to that size.
     """
     geo = georeference(sources.reference_path)
     if geo is None:
         raise ValueError("registered.tif needs a georeferenced reference file")
-    moving = sources.moving_raster if sources.moving_raster is not None else sources.moving
-    if moving is None:
-        from pwlreg.core.io import read_image
+    with moving_source(result, sources) as source:
+        _write_tiles(result, source, geo, _nodata(sources.moving_path), path,
+                     threads=sources.threads, colour=_picture_bands(result, sources))
 
-        moving = read_image(sources.moving_path, field="moving")
-    bands, valid = file_bands(moving)
-    dtype = bands.dtype
-    nodata = _nodata(sources.moving_path)
+
+def _picture_bands(result: RegistrationResult, sources: Sources) -> int:
+    """The bands of a colour picture (3 or 4, written as RGB(A)), else 0."""
+    if hasattr(result, "moving_recipe"):  # registered on levels: is its level a picture?
+        moving = result.moving_level if result.moving_recipe is None else None
+    else:
+        moving = sources.moving_raster if sources.moving_raster is not None else sources.moving
+    if moving is None or not is_picture(moving) or moving.ndim != 3:
+        return 0
+    return moving.shape[2]
+
+
+def _write_tiles(result: RegistrationResult, source: BandSource, geo: Georeference,
+                 nodata: float | None, path: Path, *, threads: int, colour: int) -> None:
+    dtype = np.dtype(source.dtype)
     if nodata is None:
         nodata = float("nan") if dtype.kind == "f" else 0
     height, width = geo.height, geo.width
     profile = {
-        "driver": "GTiff", "width": width, "height": height, "count": bands.shape[2],
+        "driver": "GTiff", "width": width, "height": height, "count": source.count,
         "dtype": dtype.name, "crs": geo.crs, "transform": geo.transform, "nodata": nodata,
         "tiled": True, "blockxsize": _BLOCK, "blockysize": _BLOCK, "compress": "deflate",
         "predictor": 3 if dtype.kind == "f" else 2, "interleave": "pixel",
-        "zlevel": 1, "bigtiff": "if_safer", "num_threads": max(1, sources.threads),
+        "zlevel": 1, "bigtiff": "if_safer", "num_threads": max(1, threads),
     }
-    ref = np.asarray(result.reference_vertices, np.float64)
-    tris = np.asarray(result.final_triangles, np.int64).reshape(-1, 3)
-    maps = affine_maps(ref[tris], np.asarray(result.moving_vertices, np.float64)[tris])
-    valid8 = None if valid is None else valid.astype(np.uint8) * np.uint8(255)
-    with rasterio.Env(ZLEVEL_OVERVIEW=1), rasterio.open(path, "w", **profile) as dst:
-        if is_picture(moving) and bands.shape[2] in (3, 4):
-            dst.colorinterp = [*_COLOUR, ColorInterp.alpha][: bands.shape[2]]
-        for y0 in range(0, height, _BLOCK):
-            for x0 in range(0, width, _BLOCK):
-                window = Window(x0, y0, min(_BLOCK, width - x0), min(_BLOCK, height - y0))
-                tile = _warp_tile(bands, valid8, ref[tris], maps, window, nodata)
-                dst.write(np.moveaxis(tile, -1, 0), window=window)
+    tiles = warp_tiles(source, result.reference_vertices, result.moving_vertices,
+                       result.final_triangles, (height, width), nodata=nodata)
+    with rasterio.Env(ZLEVEL_OVERVIEW=1, GDAL_CACHEMAX=CACHE_BYTES), \
+            rasterio.open(path, "w", **profile) as dst:
+        if colour:
+            dst.colorinterp = [*_COLOUR, ColorInterp.alpha][:colour]
+        for tile in tiles:
+            rows, cols = tile.bands.shape[:2]
+            dst.write(np.moveaxis(tile.bands, -1, 0), window=Window(tile.x0, tile.y0, cols, rows))
         factors, factor = [], 1
         while max(width, height) // factor > _OVERVIEW_SIDE:
             factor *= 2
             factors.append(factor)
         if factors:
             dst.build_overviews(factors, Resampling.average)
+
+
+def moving_source(result: RegistrationResult, sources: Sources
+                  ) -> contextlib.AbstractContextManager[BandSource]:
+    """The moving image at full resolution, as a :class:`~pwlreg.core.tiled.BandSource`: the
+    decoded raster or picture in ``sources`` when it is at full size, else its file (a TIFF
+    read by windows, another format decoded)."""
+    width, height = result.moving_size
+    for image in (sources.moving_raster, sources.moving):
+        if image is not None and image.shape[:2] == (height, width):
+            return contextlib.nullcontext(ArrayBands(image))
+    path = sources.moving_path
+    if path is None:
+        raise ValueError("the moving image is not at hand")
+    if _starts_as_tiff(path):
+        with open_tiff(path, "moving") as ds:
+            palette = ds.count == 1 and ds.colorinterp[0] == ColorInterp.palette
+        if not palette:
+            return RasterFile(path, "moving")
+    from pwlreg.core.io import read_image
+
+    return contextlib.nullcontext(ArrayBands(read_image(path, field="moving")))
 
 
 def _nodata(source: str | os.PathLike | None) -> float | None:
@@ -327,56 +449,48 @@ def _nodata(source: str | os.PathLike | None) -> float | None:
         return ds.nodata
 
 
-def _warp_tile(src: np.ndarray, valid8: np.ndarray | None, ref_tris: np.ndarray,
-               maps: np.ndarray, window: Window, nodata: float) -> np.ndarray:
-    """One tile of the registered raster, ``(rows, cols, C)``.
 
-    The fill rule of :mod:`core.raster` gives each tile pixel to one triangle (the grid shifted
-    by whole pixels owns the same pixels), whose affine map places it in the moving image;
-    OpenCV's bilinear ``remap`` (1/32-pixel weights) samples the part of the moving image the
-    tile maps onto. A pixel is nodata outside the mesh, where it maps outside the moving image,
-    or where one of its four source pixels is invalid.
+
+def read_by_windows(path: str | os.PathLike, level_pixels: int = LEVEL_PIXELS) -> bool:
+    """Whether :func:`open_image` reads this file window by window: a TIFF of more than
+    ``level_pixels`` pixels (but a palette TIFF, expanded whole)."""
+    if not _starts_as_tiff(path):
+        return False
+    try:
+        with open_tiff(path, "image") as ds:
+            palette = ds.count == 1 and ds.colorinterp[0] == ColorInterp.palette
+            return ds.width * ds.height > level_pixels and not palette
+    except UnsupportedMediaError:
+        return False  # the probe says why
+
+
+def open_image(path: str | os.PathLike, *, max_pixels: int | None = None,
+               max_raster_pixels: int | None = None, level_pixels: int = LEVEL_PIXELS,
+               field: str = "image") -> np.ndarray | RasterFile:
+    """An image file, decoded, or, for a TIFF of more than ``level_pixels`` pixels, opened
+    for reading window by window (:class:`RasterFile`; close it after use).
+
+    Parameters
+    ----------
+    path : path
+    max_pixels : int, optional
+        Largest image decoded whole (:func:`pwlreg.core.io.read_image`).
+    max_raster_pixels : int, optional
+        Largest TIFF read window by window (the work memory does not grow with it; the
+        limit keeps a job's time bounded). None: the decoder's limit, 2**30.
+    level_pixels : int
+        TIFFs up to this size are decoded whole.
+    field : str
+        Name used in error messages.
+
+    Raises
+    ------
+    UnsupportedMediaError, InputError, ImageTooLargeError
+        As :func:`pwlreg.core.io.probe_image`.
     """
-    rows, cols = int(window.height), int(window.width)
-    x0, y0 = int(window.col_off), int(window.row_off)
-    out = np.full((rows, cols, src.shape[2]), nodata, dtype=src.dtype)
-    spans = rasterize(ref_tris - np.array([x0, y0], np.float64), (rows, cols))
-    if not spans.length.sum():
-        return out
-    _, x, y = expand(spans)
-    # Along a run the map is x -> a x + b: coefficients per run, repeated over its pixels.
-    m = maps[spans.triangle]
-    yy = (spans.y + y0).astype(np.float64)
-    n = spans.length
-    xf = (x + x0).astype(np.float64)
-    mx = np.repeat(m[:, 0, 0], n) * xf + np.repeat(m[:, 0, 1] * yy + m[:, 0, 2], n)
-    my = np.repeat(m[:, 1, 0], n) * xf + np.repeat(m[:, 1, 1] * yy + m[:, 1, 2], n)
-    mh, mw = src.shape[:2]
-    keep = (mx >= 0) & (my >= 0) & (mx <= mw - 1) & (my <= mh - 1)
-    if not keep.any():
-        return out
-    flat, mx, my = (y * cols + x)[keep], mx[keep], my[keep]
-    sx0, sy0 = int(mx.min()), int(my.min())
-    sx1, sy1 = min(int(mx.max()) + 2, mw), min(int(my.max()) + 2, mh)
-    map_x = np.full(rows * cols, -1.0, np.float32)  # -1: not mapped
-    map_y = np.zeros(rows * cols, np.float32)
-    map_x[flat] = mx - sx0
-    map_y[flat] = my - sy0
-    map_x, map_y = map_x.reshape(rows, cols), map_y.reshape(rows, cols)
-    inside = map_x >= 0
-    if valid8 is not None:
-        ok = cv2.remap(valid8[sy0:sy1, sx0:sx1], map_x, map_y, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
-        inside &= ok == 255
-    part = src[sy0:sy1, sx0:sx1]
-    exact = part.dtype in _REMAP_DTYPES
-    for c0 in range(0, src.shape[2], 4):  # remap takes up to 4 channels at once
-        chunk = np.ascontiguousarray(part[:, :, c0:c0 + 4])
-        warped = cv2.remap(chunk if exact else chunk.astype(np.float64), map_x, map_y,
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        warped = warped.reshape(rows, cols, -1)
-        if not exact:
-            info = np.iinfo(src.dtype)
-            warped = np.clip(np.round(warped), info.min, info.max)
-        np.copyto(out[:, :, c0:c0 + 4], warped, where=inside[:, :, None], casting="unsafe")
-    return out
+    from pwlreg.core.io import probe_image, read_image
+
+    if read_by_windows(path, level_pixels):
+        probe_image(path, max_raster_pixels, field)
+        return RasterFile(path, field)
+    return read_image(path, max_pixels, field)

@@ -22,6 +22,7 @@ from fastapi.responses import FileResponse
 from pydantic import ValidationError
 
 from pwlreg.core.errors import InputError
+from pwlreg.core.formats.geotiff import read_by_windows
 from pwlreg.core.formats.points import is_gis_points
 from pwlreg.core.io import load_points, probe_image
 from pwlreg.core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
@@ -196,13 +197,15 @@ def check_points(
             ) from None
 
 
-def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, Any], bool]:
+def validate_submission(form: ReceivedForm, max_pixels: int, max_raster_pixels: int
+                        ) -> tuple[dict[str, Any], bool]:
     """Check every part of a submission without decoding the images.
 
-    The images' kind, size (against ``max_pixels``) and structure are checked from their bytes
-    (:func:`core.io.probe_image`); decoding them is left to the worker, so that the API process
-    does little CPU work per upload and the worker pool is what scales. Client points are
-    checked against the images' sizes (:func:`check_points`).
+    The images' kind, size (against ``max_pixels``, or ``max_raster_pixels`` for a TIFF read
+    window by window, :func:`core.formats.geotiff.read_by_windows`) and structure are checked
+    from their bytes (:func:`core.io.probe_image`); decoding them is left to the worker, so
+    that the API process does little CPU work per upload and the worker pool is what scales.
+    Client points are checked against the images' sizes (:func:`check_points`).
 
     Returns
     -------
@@ -227,8 +230,12 @@ def validate_submission(form: ReceivedForm, max_pixels: int) -> tuple[dict[str, 
     )
     has_points = "points" in form.parts
     try:
-        sizes = {name: probe_image(form.parts[name].path, max_pixels, field=name)
-                 for name in IMAGES}
+        sizes = {
+            name: probe_image(form.parts[name].path, max_raster_pixels
+                              if read_by_windows(form.parts[name].path) else max_pixels,
+                              field=name)
+            for name in IMAGES
+        }
         points = None
         if has_points:
             data = form.parts["points"].path.read_bytes()
@@ -360,7 +367,8 @@ def _accept(
                 )
             return existing, False
     check_queue(services, client)  # again: other jobs may have come while this one uploaded
-    options, has_points = validate_submission(form, settings.max_pixels)
+    options, has_points = validate_submission(form, settings.max_pixels,
+                                              settings.max_raster_pixels)
     callback = _read_callback(form, AllowList.parse(settings.webhook_allow), base_url)
     job_id = uuid.uuid4().hex
     # Files first, then the row: a crash in between leaves files without a row (swept later),
