@@ -262,6 +262,8 @@ def _one_tile(source: BandSource, ref_tris: np.ndarray, maps: np.ndarray, closed
     inside = map_x >= 0
     part, valid = source.read(sx0, sy0, sx1, sy1)
     if valid is not None:
+        if part.dtype.kind == "f":  # a NaN weighted 0 still makes NaN: only finite samples
+            part = np.where(valid[:, :, None], part, 0)
         ok = cv2.remap(valid.astype(np.uint8) * np.uint8(255), map_x, map_y, cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)
         inside &= ok == 255
