@@ -10,8 +10,6 @@ import csv
 import io
 import json
 import os
-import zlib
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,6 +19,7 @@ from PIL import Image, UnidentifiedImageError
 
 from pwlreg.core.errors import ImageTooLargeError, InputError, UnsupportedMediaError
 from pwlreg.core.formats.geotiff import is_tiff, probe_tiff, read_tiff
+from pwlreg.core.formats.png import write_image
 from pwlreg.core.formats.points import is_gis_points, read_gis_points
 from pwlreg.core.imaging import check_image
 
@@ -312,28 +311,13 @@ def convergence_document(result: RegistrationResult) -> dict:
     }
 
 
-_PNG_COLOUR_TYPES = {1: 0, 2: 4, 3: 2, 4: 6}
-"""PNG colour type by channel count: grey, grey+alpha, RGB, RGBA."""
-_PNG_PIECE_BYTES = 32 << 20
-"""Largest piece of filtered data deflated at once (one IDAT chunk each, far below 2**31)."""
-_PNG_BLOCK_BYTES = 4 << 20
-"""Rows filtered at once: numpy copies the overlapping rows of an in-place filter."""
-
-
-def _png_chunk(kind: bytes, data: bytes) -> list[bytes]:
-    return [len(data).to_bytes(4, "big"), kind, data,
-            zlib.crc32(data, zlib.crc32(kind)).to_bytes(4, "big")]
-
-
 def encode_png(image: np.ndarray, threads: int = 1, level: int = 1) -> bytes:
     """PNG bytes of an OpenCV-layout image: grey, grey+alpha, BGR or BGRA, 8 or 16 bit.
 
-    Every row uses the PNG "Up" filter, computed in place in the one buffer the samples are
-    written to, and the deflate stream is cut into pieces compressed on ``threads`` threads
-    (pigz's method: each piece but the last ends on a sync flush, so that their concatenation is
-    one valid stream). On the smooth images this service writes it takes about half the time of
-    ``cv2.imencode`` for a third of the size, and OpenCV cannot write grey+alpha at all. Memory:
-    one copy of the image plus the compressed data, twice.
+    Written by :func:`pwlreg.core.formats.png.write_image`: every row uses the PNG "Up"
+    filter and the deflate stream is compressed in pieces on ``threads`` threads (pigz's
+    method). On the smooth images this service writes it takes about half the time of
+    ``cv2.imencode`` for a third of the size, and OpenCV cannot write grey+alpha at all.
 
     Parameters
     ----------
@@ -344,44 +328,6 @@ def encode_png(image: np.ndarray, threads: int = 1, level: int = 1) -> bytes:
     level : int
         zlib level, 1 (fastest) to 9.
     """
-    if image.ndim == 2:
-        image = image[:, :, None]
-    if image.ndim != 3 or image.shape[2] not in _PNG_COLOUR_TYPES or 0 in image.shape:
-        raise ValueError(f"cannot write an image of shape {image.shape} as PNG")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise ValueError(f"cannot write {image.dtype} pixels as PNG (uint8 or uint16)")
-    height, width, channels = image.shape
-    filtered = np.empty((height, 1 + width * channels * image.dtype.itemsize), np.uint8)
-    filtered[:, 0] = 2  # Up: each byte minus the byte above it, modulo 256
-    rows = filtered[:, 1:]
-    samples = rows.view(image.dtype.newbyteorder(">")).reshape(height, width, channels)
-    order = [2, 1, 0, 3][:channels] if channels >= 3 else range(channels)  # BGR(A) -> RGB(A)
-    for i, channel in enumerate(order):
-        samples[:, :, i] = image[:, :, channel]
-    block = max(1, _PNG_BLOCK_BYTES // filtered.shape[1])
-    for stop in range(height, 1, -block):  # bottom up: each row still sees the raw row above
-        start = max(1, stop - block)
-        np.subtract(rows[start:stop], rows[start - 1:stop - 1], out=rows[start:stop])
-    raw = memoryview(filtered).cast("B")
-
-    wanted = max(int(threads), -(-raw.nbytes // _PNG_PIECE_BYTES))
-    pieces = max(1, min(wanted, raw.nbytes // (256 * 1024)))
-    bounds = np.linspace(0, raw.nbytes, pieces + 1).astype(np.int64)
-
-    def deflate(i: int) -> bytes:
-        compressor = zlib.compressobj(level, zlib.DEFLATED, -15)
-        body = compressor.compress(raw[bounds[i]:bounds[i + 1]])
-        return body + compressor.flush(zlib.Z_FINISH if i == pieces - 1 else zlib.Z_SYNC_FLUSH)
-
-    if pieces == 1 or threads <= 1:
-        deflated = [deflate(i) for i in range(pieces)]
-    else:
-        with ThreadPoolExecutor(min(int(threads), pieces)) as pool:
-            deflated = list(pool.map(deflate, range(pieces)))
-    deflated[0] = b"\x78\x01" + deflated[0]  # the zlib stream's header...
-    deflated[-1] += zlib.adler32(raw).to_bytes(4, "big")  # ...and its checksum
-    header = b"".join((width.to_bytes(4, "big"), height.to_bytes(4, "big"),
-                       bytes((8 * image.dtype.itemsize, _PNG_COLOUR_TYPES[channels], 0, 0, 0))))
-    idat = [part for piece in deflated for part in _png_chunk(b"IDAT", piece)]
-    return b"".join([b"\x89PNG\r\n\x1a\n", *_png_chunk(b"IHDR", header), *idat,
-                     *_png_chunk(b"IEND", b"")])
+    out = io.BytesIO()
+    write_image(out, image, threads=threads, level=level)
+    return out.getvalue()

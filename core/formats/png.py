@@ -19,7 +19,6 @@ import numpy as np
 
 from pwlreg.core.formats.geotiff import moving_source
 from pwlreg.core.imaging import PICTURE_BAND, PictureRecipe, apply_recipe, matching_image
-from pwlreg.core.io import encode_png
 from pwlreg.core.tiled import warp_tiles
 
 if TYPE_CHECKING:
@@ -30,6 +29,10 @@ COLOUR_TYPES = {1: 0, 2: 4, 3: 2, 4: 6}
 """PNG colour type by channel count: grey, grey+alpha, RGB, RGBA."""
 _PIECE_BYTES = 8 << 20
 """Bytes of filtered rows compressed as one piece."""
+_BLOCK_BYTES = 4 << 20
+"""Bytes of rows filtered by one numpy call (cache-sized)."""
+_STRIP_BYTES = 16 << 20
+"""Bytes of an image in memory written per strip (:func:`write_image`)."""
 
 
 def _chunk(kind: bytes, data: bytes) -> bytes:
@@ -78,6 +81,7 @@ class PngWriter:
         self._previous: np.ndarray | None = None  # the last raw row written
         self._adler = 1
         self._started = False
+        self._pool: ThreadPoolExecutor | None = None
         header = b"".join((width.to_bytes(4, "big"), height.to_bytes(4, "big"),
                            bytes((8 * dtype.itemsize, COLOUR_TYPES[channels], 0, 0, 0))))
         file.write(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header))
@@ -89,6 +93,8 @@ class PngWriter:
                  trace: TracebackType | None) -> None:
         if kind is None:
             self.close()
+        elif self._pool is not None:
+            self._pool.shutdown()
 
     def write(self, strip: np.ndarray) -> None:
         """Append the rows of ``strip`` ``(rows, width[, channels])`` (OpenCV order)."""
@@ -100,23 +106,30 @@ class PngWriter:
                              f"{self.width}-pixel {self.channels}-channel {self.dtype} PNG")
         if self._rows + rows > self.height:
             raise ValueError(f"more than the {self.height} rows of the PNG")
-        raw = np.empty((rows, self.width * self.channels * self.dtype.itemsize), np.uint8)
+        filtered = np.empty((rows, 1 + self.width * self.channels * self.dtype.itemsize),
+                            np.uint8)
+        filtered[:, 0] = 2  # Up: each byte minus the byte above it, modulo 256
+        raw = filtered[:, 1:]
         samples = raw.view(self.dtype.newbyteorder(">")).reshape(rows, self.width, self.channels)
         order = [2, 1, 0, 3][:self.channels] if self.channels >= 3 else range(self.channels)
         for i, channel in enumerate(order):  # BGR(A) -> RGB(A)
             samples[:, :, i] = strip[:, :, channel]
-        filtered = np.empty((rows, 1 + raw.shape[1]), np.uint8)
-        filtered[:, 0] = 2  # Up
-        above = self._previous if self._previous is not None else np.zeros_like(raw[0])
-        np.subtract(raw[0], above, out=filtered[0, 1:])
-        np.subtract(raw[1:], raw[:-1], out=filtered[1:, 1:])
-        self._previous = raw[-1].copy()
+        last = raw[-1].copy()
+        block = max(1, _BLOCK_BYTES // filtered.shape[1])
+        for stop in range(rows, 1, -block):  # bottom up: each row still sees the raw row above
+            start = max(1, stop - block)
+            np.subtract(raw[start:stop], raw[start - 1:stop - 1], out=raw[start:stop])
+        if self._previous is not None:
+            np.subtract(raw[0], self._previous, out=raw[0])
+        self._previous = last
         self._rows += rows
         self._deflate(memoryview(filtered).cast("B"))
 
     def _deflate(self, data: memoryview) -> None:
         self._adler = zlib.adler32(data, self._adler)
-        pieces = max(1, min(self.threads * 2, -(-data.nbytes // _PIECE_BYTES)))
+        # Pieces of at least 256 KB (smaller ones compress worse), on every thread.
+        wanted = max(self.threads, -(-data.nbytes // _PIECE_BYTES))
+        pieces = max(1, min(wanted, data.nbytes // (256 << 10)))
         bounds = np.linspace(0, data.nbytes, pieces + 1).astype(np.int64)
 
         def deflate(i: int) -> bytes:
@@ -127,8 +140,9 @@ class PngWriter:
         if pieces == 1 or self.threads == 1:
             parts = [deflate(i) for i in range(pieces)]
         else:
-            with ThreadPoolExecutor(min(self.threads, pieces)) as pool:
-                parts = list(pool.map(deflate, range(pieces)))
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(self.threads)
+            parts = list(self._pool.map(deflate, range(pieces)))
         body = b"".join(parts)
         if not self._started:
             body = b"\x78\x01" + body  # the zlib stream's header
@@ -137,11 +151,28 @@ class PngWriter:
 
     def close(self) -> None:
         """End the stream (a final empty block and the checksum) and the file."""
+        if self._pool is not None:
+            self._pool.shutdown()
         if self._rows != self.height:
             raise ValueError(f"{self._rows} of the PNG's {self.height} rows were written")
         end = zlib.compressobj(self.level, zlib.DEFLATED, -15).flush(zlib.Z_FINISH)
         self.file.write(_chunk(b"IDAT", end + self._adler.to_bytes(4, "big"))
                         + _chunk(b"IEND", b""))
+
+
+def write_image(file: BinaryIO, image: np.ndarray, *, threads: int = 1, level: int = 1) -> None:
+    """Write an OpenCV-layout image (grey, grey+alpha, BGR or BGRA; uint8 or uint16) as PNG,
+    a strip of about 16 MB at a time (the memory of a strip beside the image)."""
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.ndim != 3 or 0 in image.shape:
+        raise ValueError(f"cannot write an image of shape {image.shape} as PNG")
+    height, width, channels = image.shape
+    with PngWriter(file, width, height, channels, image.dtype, threads=threads,
+                   level=level) as png:
+        rows = max(1, _STRIP_BYTES // (width * channels * image.dtype.itemsize))
+        for start in range(0, height, rows):
+            png.write(image[start:start + rows])
 
 
 def write_registered(result: RegistrationResult, sources: Sources, path: Path) -> None:
@@ -156,7 +187,8 @@ def write_registered(result: RegistrationResult, sources: Sources, path: Path) -
     """
     width, height = result.reference_size
     if result.registered.shape[:2] == (height, width):
-        path.write_bytes(encode_png(result.registered, threads=sources.threads))
+        with path.open("wb") as file:
+            write_image(file, result.registered, threads=sources.threads)
         return
     with moving_source(result, sources) as source, path.open("wb") as file:
         picture = _tile_picture(source.count, getattr(result, "moving_recipe", None),

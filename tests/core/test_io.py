@@ -101,8 +101,9 @@ def test_png_round_trip(dtype, channels, threads):
 @pytest.mark.parametrize("threads", [1, 2])
 def test_png_in_many_blocks_and_pieces_of_a_strided_image(monkeypatch, threads):
     # Small blocks and pieces, as a huge image would have them; a view with negative strides.
-    monkeypatch.setattr("pwlreg.core.io._PNG_BLOCK_BYTES", 1000)
-    monkeypatch.setattr("pwlreg.core.io._PNG_PIECE_BYTES", 300 * 1024)
+    monkeypatch.setattr("pwlreg.core.formats.png._BLOCK_BYTES", 1000)
+    monkeypatch.setattr("pwlreg.core.formats.png._PIECE_BYTES", 300 * 1024)
+    monkeypatch.setattr("pwlreg.core.formats.png._STRIP_BYTES", 1 << 20)
     base = np.random.default_rng(1).integers(0, 65535, (700, 900, 4), dtype=np.uint16)
     img = base[::-1, 100:, :]
     data = encode_png(img, threads=threads)
