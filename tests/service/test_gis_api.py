@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 import pytest
@@ -165,3 +166,40 @@ def test_command_line_takes_gis_points(tmp_path: Path, points: str) -> None:
     np.testing.assert_allclose(mesh["matching"]["moving"], pair.moving_points, atol=1e-6)
     with rasterio.open(out / "registered.tif") as ds:
         assert ds.count == 2 and ds.crs == UTM
+
+
+def test_a_raster_over_the_level_size_is_read_by_windows(start_server, tmp_path) -> None:
+    """A 17 MP GeoTIFF pair (over the 16.8 MP level, and 34x the server's max_pixels, which
+    only bounds images decoded whole) registers on levels: full-size registered.tif, the
+    client's points as vertices."""
+    height, width, shift = 3712, 4608, (7, 5)
+    rng = np.random.default_rng(4)
+    small = rng.random(((height + 64) // 8, (width + 64) // 8)).astype(np.float32)
+    full = cv2.resize(small, ((width + 64), (height + 64)), interpolation=cv2.INTER_CUBIC)
+    full = np.clip(full * 255, 0, 255).astype(np.uint8)
+    reference = full[None, 32:32 + height, 32:32 + width]
+    moving = full[None, 32 + shift[1]:32 + shift[1] + height, 32 + shift[0]:32 + shift[0] + width]
+    xs, ys = np.meshgrid(np.linspace(40, width - 40, 9), np.linspace(40, height - 40, 7))
+    ref_pts = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    points = json.dumps({"reference": ref_pts.tolist(),
+                         "moving": (ref_pts - np.array(shift)).tolist()}).encode()
+    server = start_server(PWLREG_WORKERS="1", PWLREG_MAX_UPLOAD_BYTES=str(64 << 20))
+    with server.client() as client:
+        job = _finished(client, _post(client, geotiff(reference), geotiff(moving), points,
+                                      NO_FILTER))
+        links = _links(job)
+        tif = client.get(links["registered.tif"][0]).content
+        mesh = client.get(f"/v1/jobs/{job['id']}/mesh").json()
+        png = client.get(links["registered.png"][0]).content
+    assert mesh["image_size"]["reference"] == [width, height]
+    measured = ~np.array(mesh["extrapolated"])
+    np.testing.assert_allclose(np.sort(np.array(mesh["reference_vertices"])[measured], axis=0),
+                               np.sort(ref_pts, axis=0), atol=1 / 256)
+    with rasterio.open(io.BytesIO(tif)) as ds:
+        assert (ds.width, ds.height, ds.count, ds.transform) == (width, height, 1, TRANSFORM)
+        out = ds.read(1)
+    inside = out != 0
+    assert inside.mean() > 0.9
+    np.testing.assert_array_equal(out[inside], reference[0][inside])
+    decoded = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert decoded.shape[:2] == (height, width)
