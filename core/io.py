@@ -281,6 +281,11 @@ def mesh_document(result: RegistrationResult) -> dict:
             "reference": list(result.reference_size),
             "moving": list(result.moving_size),
         },
+        # Registered on reduced levels (core/scaled.py): their factors and the refinement.
+        "levels": {
+            "factors": [int(result.scales[0, 0]), int(result.scales[1, 0])],
+            "refined": result.refined,
+        } if getattr(result, "scales", None) is not None else None,
         "timings_s": result.timings,
     }
 

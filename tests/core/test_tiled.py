@@ -235,6 +235,7 @@ def test_large_georeferenced_raster_end_to_end(tmp_path):
     np.testing.assert_array_equal(png[:, :, 1] == 255, inside)
     mesh = json.loads((tmp_path / "out" / "mesh.json").read_text())
     assert mesh["image_size"]["reference"] == [480, 360]
+    assert mesh["levels"] == {"factors": [4, 4], "refined": None}  # the client's points
 
 
 def test_matching_image_of_a_level_is_the_level_of_the_picture():
