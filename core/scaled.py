@@ -2,8 +2,9 @@
 the geometry at full resolution.
 
 :func:`register` is :func:`pwlreg.core.pipeline.register` for images of any size. Under
-:data:`LEVEL_PIXELS` it is that function. Above, each image is read reduced (area average) to at
-most :data:`LEVEL_PIXELS` pixels by a whole factor, window by window when it comes from a file
+:data:`LEVEL_PIXELS` it is that function. Above, both images are read reduced (area average) by
+the same whole factor, the one that leaves the larger at most :data:`LEVEL_PIXELS` pixels (so
+that the pair's relative scale is the one the client gave), window by window when from a file
 (:class:`pwlreg.core.tiled.BandSource`), and the whole method (matching, triangulation, search,
 verdict) runs on the two levels: the mutual information that steers the search is a statistic
 of the image content, which a level of millions of pixels estimates as well as the full image.
@@ -119,10 +120,9 @@ def register(
 
     t = time.perf_counter()
     levels, recipes, scales = [], [], []
-    for image, source, (height, width), name in zip(
-        (reference, moving), sources, shapes, ("reference", "moving"), strict=True
-    ):
-        factor = level_factor(height, width, level_pixels)
+    factor = max(level_factor(h, w, level_pixels) for h, w in shapes)
+    for image, source, name in zip((reference, moving), sources, ("reference", "moving"),
+                                   strict=True):
         if source is None:
             source = ArrayBands(image) if factor > 1 else None
         # The level's picture, not the level: a multi-band level is 10x its picture's size.
