@@ -18,17 +18,18 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import rasterio
+from rasterio.errors import NotGeoreferencedWarning
 from rasterio.transform import from_origin
 from rasterio.windows import Window
 
@@ -87,16 +88,20 @@ class Motion:
 
 def write_pair(folder: Path, megapixels: int, kind: str) -> tuple[Path, Path, Path, Motion]:
     """Write reference.tif, moving.tif and points.json; ``kind`` is ``grey`` (uint8, 1 band)
-    or ``multi`` (uint16, 4 bands: the texture under four different radiometric curves)."""
+    or ``multi`` (uint16, 4 bands: the texture under four different radiometric curves).
+    Files a previous run left in ``folder`` are used again (the pair is deterministic)."""
     side = int(round(np.sqrt(megapixels * 1e6 / 1.25)))
     width, height = int(side * 1.25) // 16 * 16, side // 16 * 16
-    texture = Texture(width, height)
     motion = Motion(width, height)
+    paths = folder / "reference.tif", folder / "moving.tif"
+    if all(p.exists() for p in (*paths, folder / "points.json")):
+        return paths[0], paths[1], folder / "points.json", motion
+    warnings.simplefilter("ignore", NotGeoreferencedWarning)  # the moving file has no grid
+    texture = Texture(width, height)
     count, dtype = (1, "uint8") if kind == "grey" else (4, "uint16")
     profile = {"driver": "GTiff", "width": width, "height": height, "count": count,
                "dtype": dtype, "tiled": True, "blockxsize": 512, "blockysize": 512,
                "compress": "deflate", "zlevel": 1, "predictor": 2, "bigtiff": "yes"}
-    paths = folder / "reference.tif", folder / "moving.tif"
     for path, moving in zip(paths, (False, True), strict=True):
         extra = {"crs": "EPSG:32633", "transform": from_origin(500000, 5200000, 0.5, 0.5)}
         with rasterio.open(path, "w", **profile, **({} if moving else extra)) as dst:
@@ -130,21 +135,24 @@ def _bands(v: np.ndarray, kind: str, moving: bool) -> np.ndarray:
 
 
 def run_cli(reference: Path, moving: Path, points: Path, out: Path) -> tuple[float, float, str]:
-    """Seconds and peak resident memory (MB) of ``pwlreg register`` in a child process."""
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    start = time.perf_counter()
-    done = subprocess.run(
-        [sys.executable, "-m", "pwlreg.service.cli", "register", str(reference), str(moving),
-         "--points", str(points), "--out", str(out), "--quiet"],
-        capture_output=True, text=True, check=False,
-    )
-    seconds = time.perf_counter() - start
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-    if done.returncode:
-        raise RuntimeError(f"pwlreg register failed: {done.stderr.strip()[-2000:]}")
-    if peak < before / 1024:
-        peak = float("nan")  # an earlier child peaked higher: not this run's figure
-    return seconds, peak, done.stdout.strip().splitlines()[-1]
+    """Seconds and peak resident memory (MB) of ``pwlreg register`` in a child process (the
+    child's own peak, from ``wait4``)."""
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "stdout.txt").open("w+") as stdout, (out / "stderr.txt").open("w+") as stderr:
+        start = time.perf_counter()
+        child = subprocess.Popen(
+            [sys.executable, "-m", "pwlreg.service.cli", "register", str(reference),
+             str(moving), "--points", str(points), "--out", str(out), "--quiet"],
+            stdout=stdout, stderr=stderr,
+        )
+        _, status, usage = os.wait4(child.pid, 0)
+        child.returncode = os.waitstatus_to_exitcode(status)
+        seconds = time.perf_counter() - start
+        stdout.seek(0)
+        stderr.seek(0)
+        if child.returncode:
+            raise RuntimeError(f"pwlreg register failed: {stderr.read().strip()[-2000:]}")
+        return seconds, usage.ru_maxrss / 1024, stdout.read().strip().splitlines()[-1]
 
 
 def mesh_error(out: Path, motion: Motion) -> float:
@@ -158,12 +166,13 @@ def mesh_error(out: Path, motion: Motion) -> float:
 
 
 def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> None:
-    """The tiled warp of a whole registered raster against one ``cv2.remap`` of the same
-    output with a precomputed map (the moving image and the map in memory)."""
+    """The tiled warp of a whole registered raster, read by windows from the file and from the
+    image in memory, against one ``cv2.remap`` of the same output with a precomputed map (the
+    moving image and the map in memory)."""
     from scipy.spatial import Delaunay
 
     from pwlreg.core.formats.geotiff import RasterFile
-    from pwlreg.core.tiled import warp_tiles
+    from pwlreg.core.tiled import ArrayBands, warp_tiles
     from pwlreg.core.warp import piecewise_map
 
     doc = json.loads(points.read_text())
@@ -172,26 +181,22 @@ def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> 
     with RasterFile(moving) as source:
         image, _ = source.read(0, 0, source.width, source.height)
         shape = (source.height, source.width)
-
-        def tiled() -> None:
-            for _ in warp_tiles(source, ref, mov, tris, shape):
-                pass
-
         map_x, map_y, _ = piecewise_map(ref, mov, tris, shape)
         map_x = np.nan_to_num(map_x, nan=-1.0).astype(np.float32)
         map_y = np.nan_to_num(map_y, nan=-1.0).astype(np.float32)
+        runs = {
+            "tiled, file": lambda: all(True for _ in warp_tiles(source, ref, mov, tris, shape)),
+            "tiled, memory": lambda: all(True for _ in warp_tiles(ArrayBands(image), ref, mov,
+                                                                  tris, shape)),
+            "one cv2.remap": lambda: cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR),
+        }
+        best = {name: min(_timed(f) for _ in range(repeats)) for name, f in runs.items()}
+    floor = best["one cv2.remap"]
+    print(f"  warp {shape[1]}x{shape[0]}x{image.shape[2]} {image.dtype}: " + ", ".join(
+        f"{name} {t:.2f} s ({t / floor:.2f}x)" for name, t in best.items()) + " (target <= 2x)")
 
-        def remap() -> None:
-            cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR)
 
-        best = {name: min(_timed(f) for _ in range(repeats))
-                for name, f in (("tiled", tiled), ("remap", remap))}
-    print(f"  warp {shape[1]}x{shape[0]}x{image.shape[2]}: tiled {best['tiled']:.2f} s (file "
-          f"read by windows), one cv2.remap {best['remap']:.2f} s (in memory): "
-          f"{best['tiled'] / best['remap']:.2f}x (target <= 2)")
-
-
-def _timed(f: Callable[[], None]) -> float:
+def _timed(f: Callable[[], object]) -> float:
     start = time.perf_counter()
     f()
     return time.perf_counter() - start

@@ -16,12 +16,12 @@ from scipy.spatial import Delaunay
 from pwlreg.core.formats.geotiff import RasterFile, open_image, read_tiff
 from pwlreg.core.formats.png import PngWriter
 from pwlreg.core.imaging import file_bands, matching_image
-from pwlreg.core.io import encode_png
+from pwlreg.core.io import encode_png, read_image
 from pwlreg.core.results import Sources, write_outputs
 from pwlreg.core.scaled import ScaledResult, level_factor, register
 from pwlreg.core.tiled import ArrayBands, warp_tiles
 from pwlreg.core.warp import warp_image
-from tests.core.gis import geotiff, make_pair, scene
+from tests.core.gis import LANDSAT, geotiff, make_pair, scene
 
 NO_FILTER = {"epipolar_filter": False}
 
@@ -246,3 +246,32 @@ def test_matching_image_of_a_level_is_the_level_of_the_picture():
     level = matching_image(ArrayBands(raster).level(2)).astype(float)
     reduced = cv2.resize(full, (200, 150), interpolation=cv2.INTER_AREA)
     assert np.abs(level - reduced).mean() < 3  # grey levels, of 255
+
+
+@pytest.mark.skipif(not (LANDSAT / "l8_B8.tif").exists(),
+                    reason=f"real data not found: {LANDSAT} (../shared/data/real)")
+def test_levels_on_real_landsat_pan_band_refine_below_the_level_error(monkeypatch):
+    """Landsat 8's panchromatic band and the same band through a known affine map (2 degrees,
+    3 % scale): registered on levels 3 times smaller, the refined pairs are more exact than
+    the level's (measured: median 0.021 px against 0.060 px; 0.028 px at full resolution)."""
+    reference = read_image(LANDSAT / "l8_B8.tif")
+    height, width = reference.shape
+    angle = np.deg2rad(2.0)
+    forward = np.array([[1.03 * np.cos(angle), -1.03 * np.sin(angle), 12.3],
+                        [1.03 * np.sin(angle), 1.03 * np.cos(angle), -7.6]])
+    moving = cv2.warpAffine(reference, forward, (width, height), flags=cv2.INTER_CUBIC,
+                            borderMode=cv2.BORDER_REFLECT)
+
+    def errors(result):
+        measured = ~np.asarray(result.extrapolated, bool)
+        truth = result.reference_vertices[measured] @ forward[:, :2].T + forward[:, 2]
+        inside = ((truth > 10) & (truth < np.array([width - 10, height - 10]))).all(axis=1)
+        return np.linalg.norm(result.moving_vertices[measured] - truth, axis=1)[inside]
+
+    refined = register(reference, moving, None, {}, level_pixels=1 << 18)
+    assert refined.scales[0, 0] == 3 and len(errors(refined)) > 200
+    assert refined.refined["refined"] > 0.9 * len(errors(refined))
+    monkeypatch.setattr("pwlreg.core.scaled.refine_pairs",
+                        lambda r, m, rv, mv, measured, **k: (mv, {}))
+    level = register(reference, moving, None, {}, level_pixels=1 << 18)
+    assert np.median(errors(refined)) < min(0.04, 0.6 * np.median(errors(level)))
