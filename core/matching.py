@@ -77,6 +77,72 @@ DETECT_SIDE = 2048
 BORDER_TOLERANCE = 1.0
 
 
+#: Causes for which :class:`ConjugatePoints` lists the automatic pairs one by one in
+#: ``dropped``: the checks after a matcher. Its own losses (``"lost"``,
+#: ``"forward-backward"``, ``"outside image"`` of a tracked corner, ``"ratio test"``,
+#: ``"mutual check"``) are counted only: a failed track or a descriptor without a mutual
+#: match is not a pair.
+LISTED_AUTOMATIC = (
+    "thinned", "ambiguous", "disagreement", "low texture", "unverifiable", "epipolar",
+    "neighbours", "spread",
+)
+
+#: Causes for which the client's pairs are listed one by one: all of them.
+LISTED_CLIENT = ("not finite", "outside image", "duplicate", "epipolar")
+
+
+@dataclass(frozen=True)
+class DroppedPairs:
+    """Pairs dropped on the way to the mesh, one row each, with why.
+
+    Attributes
+    ----------
+    reference, moving : np.ndarray
+        (M, 2) float64 positions in reference and moving image pixels (NaN where a client
+        gave no finite number).
+    reason : np.ndarray
+        (M,) str, the cause: a key of :attr:`ConjugatePoints.rejected` among
+        :data:`LISTED_AUTOMATIC` or :data:`LISTED_CLIENT` (``"thinned"``: over the checks'
+        budget, thinned by the spread rule before them).
+    residuals : np.ndarray
+        (M,) float64 epipolar residual, pixels; NaN where no epipolar geometry judged the pair
+        (dropped before the filter, or the filter off).
+    """
+
+    reference: np.ndarray
+    moving: np.ndarray
+    reason: np.ndarray
+    residuals: np.ndarray
+
+    @classmethod
+    def none(cls) -> DroppedPairs:
+        """No dropped pair."""
+        return cls(np.empty((0, 2)), np.empty((0, 2)), np.empty(0, dtype=str), np.empty(0))
+
+    def __len__(self) -> int:
+        return len(self.reference)
+
+    def plus(
+        self,
+        reference: np.ndarray,
+        moving: np.ndarray,
+        reason: str | np.ndarray,
+        residuals: np.ndarray | None = None,
+    ) -> DroppedPairs:
+        """These rows followed by ``reference`` / ``moving`` pairs dropped for ``reason`` (one
+        cause for all, or one per pair), with their epipolar ``residuals`` if known."""
+        ref = np.asarray(reference, np.float64).reshape(-1, 2)
+        n = len(ref)
+        why = np.broadcast_to(np.asarray(reason, dtype=str), (n,))
+        res = np.full(n, np.nan) if residuals is None else np.asarray(residuals, np.float64)
+        return DroppedPairs(
+            np.concatenate([self.reference, ref]),
+            np.concatenate([self.moving, np.asarray(moving, np.float64).reshape(-1, 2)]),
+            np.concatenate([self.reason, why]),
+            np.concatenate([self.residuals, res]),
+        )
+
+
 @dataclass(frozen=True)
 class ConjugatePoints:
     """Conjugate point pairs kept for the mesh and how they were obtained.
@@ -103,13 +169,17 @@ class ConjugatePoints:
         Reason -> number of pairs rejected for it (``"lost"``, ``"outside image"``,
         ``"forward-backward"``, ``"ratio test"``, ``"mutual check"``, ``"ambiguous"``,
         ``"disagreement"``, ``"low texture"``, ``"unverifiable"``, ``"epipolar"``,
-        ``"neighbours"``, ``"not finite"``, ``"duplicate"``, ``"spread"``).
+        ``"neighbours"``, ``"not finite"``, ``"duplicate"``, ``"spread"``, ``"thinned"``).
     epipolar : EpipolarModel or None
         The estimated epipolar geometry; None when the filter is off.
     residuals : np.ndarray
         (N,) epipolar residual of each kept pair, pixels (NaN when the filter is off).
     notes : tuple of str
         What the client should know, e.g. that the filter was skipped and why.
+    dropped : DroppedPairs
+        The pairs dropped for one of :data:`LISTED_AUTOMATIC` (or :data:`LISTED_CLIENT`), one
+        by one: as many of each cause as ``rejected`` counts (of the matcher whose pairs were
+        kept, when ``auto`` tried several).
     """
 
     reference: np.ndarray
@@ -120,6 +190,7 @@ class ConjugatePoints:
     epipolar: EpipolarModel | None
     residuals: np.ndarray
     notes: tuple[str, ...] = ()
+    dropped: DroppedPairs = field(default_factory=DroppedPairs.none)
 
     def __len__(self) -> int:
         return len(self.reference)
@@ -156,6 +227,8 @@ class Matches:
     prior : np.ndarray, optional
         (3, 3) global homography reference -> moving the matcher worked from (the tracker's
         prior), used to compare patches with little distortion.
+    dropped : DroppedPairs
+        Pairs the checks dropped so far (see :meth:`drop`).
     """
 
     reference: np.ndarray
@@ -165,6 +238,7 @@ class Matches:
     counts: dict[str, int] = field(default_factory=dict)
     rejected: dict[str, int] = field(default_factory=dict)
     prior: np.ndarray | None = None
+    dropped: DroppedPairs = field(default_factory=DroppedPairs.none)
 
     def subset(self, keep: np.ndarray) -> Matches:
         """Same matches restricted to a boolean mask or index array."""
@@ -176,7 +250,23 @@ class Matches:
             dict(self.counts),
             dict(self.rejected),
             self.prior,
+            self.dropped,
         )
+
+    def drop(
+        self, keep: np.ndarray, reason: str | np.ndarray, residuals: np.ndarray | None = None
+    ) -> Matches:
+        """The matches of the boolean mask ``keep``; the others are added to ``dropped`` for
+        ``reason`` (one cause, or one per match) with their epipolar ``residuals`` (per match,
+        if known). The counts are the caller's."""
+        out = ~keep
+        why = reason if isinstance(reason, str) else np.asarray(reason)[out]
+        kept = self.subset(keep)
+        kept.dropped = self.dropped.plus(
+            self.reference[out], self.moving[out], why,
+            None if residuals is None else residuals[out],
+        )
+        return kept
 
 
 # --- small image helpers ------------------------------------------------------------------------
@@ -658,7 +748,7 @@ def _verify(matches: Matches, images: tuple[np.ndarray, np.ndarray], seed: int) 
         matches.reference[ambiguous], matches.moving[ambiguous],
     )
     keep[ambiguous[resolved]] = True
-    out = matches.subset(keep)
+    out = matches.drop(keep, check.cause)
     for cause, n in check.counts().items():
         n -= int(resolved.sum()) if cause == "ambiguous" else 0
         out.rejected[cause] = out.rejected.get(cause, 0) + n
@@ -677,8 +767,10 @@ def _filter_matches(
     if len(matches.reference) > budget:
         keep = spread_points(matches.reference, matches.score, budget, options.min_distance)
         n = len(matches.reference)
-        matches = matches.subset(keep)
-        matches.rejected["spread"] = matches.rejected.get("spread", 0) + n - len(keep)
+        matches = matches.drop(_mask(keep, n), "thinned")
+        # Counted apart from the final "spread": the verdict's inlier share counts that one
+        # as passed (core.quality), and these pairs never reached the checks.
+        matches.rejected["thinned"] = n - len(keep)
     matches = _verify(matches, images, options.seed)
     needed = MIN_PAIRS[options.epipolar_model] if options.epipolar_filter else MIN_MESH_PAIRS
     if len(matches.reference) < needed:
@@ -699,12 +791,12 @@ def _filter_matches(
         model, inl, res = _epipolar(
             matches.reference, matches.moving, options, f"matching ({matches.source})"
         )
-        matches = matches.subset(inl)
+        matches = matches.drop(inl, "epipolar", res)
         matches.counts["epipolar"] = int(np.count_nonzero(inl))
         matches.rejected["epipolar"] = int(np.count_nonzero(~inl))
         residuals = res[inl]
     outliers = neighbour_outliers(matches.reference, matches.moving)
-    out = matches.subset(~outliers)
+    out = matches.drop(~outliers, "neighbours", residuals)
     out.rejected["neighbours"] = int(np.count_nonzero(outliers))
     out.counts["neighbours"] = len(out.reference)
     return out, model, residuals[~outliers]
@@ -823,15 +915,24 @@ def _automatic(
     if len(keep) < MIN_MESH_PAIRS:
         stage = "the epipolar filter" if options.epipolar_filter else f"matching ({matches.source})"
         raise NotEnoughPointsError(len(keep), MIN_MESH_PAIRS, stage)
+    final = matches.drop(_mask(keep, len(matches.reference)), "spread", residuals)
     return ConjugatePoints(
-        reference=matches.reference[keep],
-        moving=matches.moving[keep],
+        reference=final.reference,
+        moving=final.moving,
         source=matches.source,
         counts=counts,
         rejected=rejected,
         epipolar=model,
         residuals=residuals[keep],
+        dropped=final.dropped,
     )
+
+
+def _mask(indices: np.ndarray, n: int) -> np.ndarray:
+    """Boolean mask of length ``n``, True at ``indices``."""
+    mask = np.zeros(n, bool)
+    mask[indices] = True
+    return mask
 
 
 def _client(
@@ -863,6 +964,10 @@ def _client(
     _, first = np.unique(ref[idx], axis=0, return_index=True)
     unique = idx[np.sort(first)]
     rejected["duplicate"] = len(idx) - len(unique)
+    reason = np.where(finite, "outside image", "not finite")
+    reason[idx] = "duplicate"
+    gone = ~_mask(unique, len(ref))
+    dropped = DroppedPairs.none().plus(ref[gone], mov[gone], reason[gone])
     ref, mov = ref[unique], mov[unique]
     counts["valid"] = len(ref)
     if len(ref) < MIN_MESH_PAIRS:
@@ -881,12 +986,13 @@ def _client(
     elif options.epipolar_filter:
         model, inl, res = _epipolar(ref, mov, options, "validation of the client points")
         rejected["epipolar"] = int(np.count_nonzero(~inl))
+        dropped = dropped.plus(ref[~inl], mov[~inl], "epipolar", res[~inl])
         ref, mov, residuals = ref[inl], mov[inl], res[inl]
         counts["epipolar"] = len(ref)
         if len(ref) < MIN_MESH_PAIRS:
             raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "the epipolar filter")
     counts["kept"] = len(ref)
-    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes)
+    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes, dropped)
 
 
 def find_conjugate_points(

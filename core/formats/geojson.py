@@ -117,44 +117,59 @@ def mesh_collection(result: RegistrationResult, sources: Sources) -> dict:
 
 
 def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
-    """The conjugate points the mesh stands on, as a FeatureCollection of Points.
+    """The conjugate points, kept and dropped, as a FeatureCollection of Points.
 
-    Each Feature is the point in the reference (``id`` its index in mesh.json's
-    ``matching.reference``), with the properties ``reference_px`` and ``moving_px`` (pixels of
-    each image), ``moving_position`` (where the moving point is on the ground, in the same
-    coordinates as the geometry, when the moving image is georeferenced by a geotransform:
-    the line from the geometry to it is the shift the registration corrects), ``residual_px``
-    (distance to the robust epipolar geometry, pixels; null when the filter was off or skipped)
-    and ``status`` (``kept``). Pairs dropped by the checks are not kept by the matcher one by
-    one: the member ``dropped`` counts them by cause (as mesh.json's ``matching.rejected``),
-    with ``source`` (``client``, ``lk``, ``sift``) and ``notes``.
+    Each Feature is a pair at its reference position. The pairs the mesh stands on come first,
+    ``id`` their index in mesh.json's ``matching.reference``; the pairs dropped on the way
+    follow (``id`` from the number of kept pairs on). Properties: ``reference_px`` and
+    ``moving_px`` (pixels of each image), ``moving_position`` (where the moving point is on
+    the ground, in the same coordinates as the geometry, when the moving image is
+    georeferenced by a geotransform: the line from the geometry to it is the shift the
+    registration corrects), ``residual_px`` (distance to the robust epipolar geometry,
+    pixels; null when none judged the pair: the filter off or skipped, or the pair dropped
+    before it), ``kept`` (true or false), ``reason`` (null for a kept pair, else the cause:
+    ``thinned``, ``ambiguous``, ``disagreement``, ``low texture``, ``unverifiable``,
+    ``epipolar``, ``neighbours``, ``spread`` for automatic pairs; ``not finite``, ``outside
+    image``, ``duplicate``, ``epipolar`` for the client's) and ``status`` (``kept`` or
+    ``dropped``). A coordinate the client gave as no finite number is null (and the geometry
+    with it). The member ``dropped`` counts the drops by cause (as mesh.json's
+    ``matching.rejected``, which also counts the matcher's own losses, listed nowhere: a
+    failed track is not a pair), with ``source`` (``client``, ``lk``, ``sift``) and ``notes``.
     """
     to_out, members, key = _frame(georeference(sources.reference_path))
     points = result.points
-    ref = np.asarray(points.reference, np.float64).reshape(-1, 2)
-    mov = np.asarray(points.moving, np.float64).reshape(-1, 2)
-    coords = to_out(ref) if len(ref) else np.zeros((0, 2))
+    kept = len(points.reference)
+    dropped = points.dropped
+    ref = np.concatenate([np.asarray(points.reference, np.float64).reshape(-1, 2),
+                          dropped.reference])
+    mov = np.concatenate([np.asarray(points.moving, np.float64).reshape(-1, 2),
+                          dropped.moving])
+    residuals = np.concatenate([np.asarray(points.residuals, np.float64), dropped.residuals])
+    reasons = [None] * kept + dropped.reason.tolist()
+    coords = _mapped(to_out, ref)
     moving_geo = georeference(sources.moving_path)
     moving_coords = None
     if moving_geo is not None and key == "lonlat" and len(mov):
         mov_frame = _frame(moving_geo)
         if mov_frame[2] == key:
-            moving_coords = mov_frame[0](mov)
+            moving_coords = _mapped(mov_frame[0], mov)
     features = []
     for i in range(len(ref)):
-        residual = float(points.residuals[i]) if i < len(points.residuals) else float("nan")
         properties = {
-            "reference_px": _rounded(ref[i], "pixel"),
-            "moving_px": _rounded(mov[i], "pixel"),
-            "residual_px": None if not np.isfinite(residual) else round(residual, 4),
-            "status": "kept",
+            "reference_px": _point(ref[i], "pixel"),
+            "moving_px": _point(mov[i], "pixel"),
+            "residual_px": round(float(residuals[i]), 4) if np.isfinite(residuals[i]) else None,
+            "kept": i < kept,
+            "reason": reasons[i],
+            "status": "kept" if i < kept else "dropped",
         }
         if moving_coords is not None:
-            properties["moving_position"] = _rounded(moving_coords[i], key)
+            properties["moving_position"] = _point(moving_coords[i], key)
+        position = _point(coords[i], key)
         features.append({
             "type": "Feature",
             "id": i,
-            "geometry": {"type": "Point", "coordinates": _rounded(coords[i], key)},
+            "geometry": None if position is None else {"type": "Point", "coordinates": position},
             "properties": properties,
         })
     return {
@@ -165,3 +180,17 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
         "notes": list(points.notes),
         "features": features,
     }
+
+
+def _mapped(to_out: Mapper, pixels: np.ndarray) -> np.ndarray:
+    """``to_out`` of the finite rows of ``pixels`` (N, 2); NaN rows stay NaN."""
+    out = np.full(pixels.shape, np.nan)
+    finite = np.isfinite(pixels).all(axis=1)
+    if finite.any():
+        out[finite] = to_out(pixels[finite])
+    return out
+
+
+def _point(xy: np.ndarray, key: str) -> list[float] | None:
+    """A position rounded for its frame, or None when it is not finite (JSON has no NaN)."""
+    return _rounded(xy, key) if np.isfinite(xy).all() else None

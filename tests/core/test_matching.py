@@ -14,6 +14,8 @@ from bench import realdata
 from pwlreg.core.epipolar import MIN_PAIRS
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.matching import (
+    LISTED_AUTOMATIC,
+    LISTED_CLIENT,
     ConjugatePoints,
     detect_corners,
     find_conjugate_points,
@@ -222,6 +224,57 @@ def test_sift_reports_ratio_and_mutual_rejections(planar_pair):
     assert m.counts["consistent"] == m.counts["matched"] - m.rejected["mutual check"]
 
 
+# --- dropped pairs, one by one -------------------------------------------------------------------
+
+
+def listed_counts(cp: ConjugatePoints) -> dict[str, int]:
+    """What ``rejected`` counts of the causes whose pairs are listed."""
+    causes = LISTED_CLIENT if cp.source == "client" else LISTED_AUTOMATIC
+    return {k: v for k, v in cp.rejected.items() if k in causes and v}
+
+
+def dropped_counts(cp: ConjugatePoints) -> dict[str, int]:
+    reasons, n = np.unique(cp.dropped.reason, return_counts=True)
+    return dict(zip(reasons.tolist(), n.tolist(), strict=True))
+
+
+@pytest.mark.parametrize("matcher", ["lk", "sift"])
+def test_every_candidate_pair_is_kept_or_listed_with_its_cause(planar_pair, matcher):
+    ref, mov, H = planar_pair
+    cp = find_conjugate_points(ref, mov, opts(matcher=matcher, max_points=100, min_distance=8))
+    dropped = cp.dropped
+    assert dropped_counts(cp) == listed_counts(cp)
+    # Every pair that passed the matcher's own consistency check is accounted for once.
+    assert len(cp) + len(dropped) == cp.counts["consistent"]
+    assert dropped_counts(cp)["spread"] == cp.counts["neighbours"] - cp.counts["kept"]
+    # Residuals where an epipolar geometry judged the pair: beyond its threshold for the
+    # epipolar drops, within it for the later ones, unknown for those dropped before it.
+    threshold = cp.epipolar.threshold
+    reason, res = dropped.reason, dropped.residuals
+    later = np.isin(reason, ["neighbours", "spread"])
+    assert np.all(res[reason == "epipolar"] > threshold)
+    assert np.all(res[later] <= threshold) and later.any()
+    assert np.isnan(res[~later & (reason != "epipolar")]).all()
+    np.testing.assert_allclose(
+        cp.epipolar.residuals(dropped.reference[later], dropped.moving[later]), res[later])
+    # The moving positions are the matcher's: the drops of the spread rule are good pairs.
+    assert np.median(transfer_error(H, dropped.reference[later], dropped.moving[later])) < 0.6
+
+
+def test_ambiguous_pairs_on_a_repeated_patch_are_listed_where_the_pattern_is():
+    ref = texture()
+    yy, xx = np.mgrid[0:140, 0:160]
+    ref[110:250, 160:320] = np.where(((xx // 10) + (yy // 10)) % 2 == 0, 40, 215)
+    H = homography()
+    cp = find_conjugate_points(ref, warp(ref, H), opts(matcher="lk", max_points=300,
+                                                        min_distance=8))
+    assert dropped_counts(cp) == listed_counts(cp)
+    ambiguous = cp.dropped.reference[cp.dropped.reason == "ambiguous"]
+    assert len(ambiguous) >= 10
+    assert np.all((ambiguous >= [150, 100]) & (ambiguous <= [330, 260]))  # the board, +10 px
+    assert len(cp) + len(cp.dropped) == cp.counts["consistent"]
+
+
 # --- client points --------------------------------------------------------------------------------
 
 
@@ -271,6 +324,13 @@ def test_client_outliers_are_all_rejected(model):
     assert cp.rejected["epipolar"] == np.count_nonzero(out)
     assert cp.counts["given"] == len(ref) and cp.counts["kept"] == len(cp)
     assert "spread" not in cp.rejected
+    # The dropped pairs are the client's own, each with its residual over the threshold.
+    dropped = {tuple(p) for p in cp.dropped.reference}
+    assert dropped == {tuple(p) for p in ref[~kept_mask]}
+    assert set(cp.dropped.reason) == {"epipolar"}
+    assert np.all(cp.dropped.residuals > cp.epipolar.threshold)
+    index = [np.flatnonzero((ref == p).all(axis=1))[0] for p in cp.dropped.reference]
+    np.testing.assert_array_equal(cp.dropped.moving, mov[index])
 
 
 def test_client_points_are_validated():
@@ -283,6 +343,12 @@ def test_client_points_are_validated():
     assert cp.rejected["outside image"] == 2
     assert cp.rejected["duplicate"] == 2
     assert cp.counts["valid"] == 200
+    # Listed in the order given, as given; the duplicates are the second copies.
+    assert cp.dropped.reason.tolist() == ["not finite", "outside image", "outside image",
+                                          "duplicate", "duplicate"]
+    np.testing.assert_array_equal(cp.dropped.reference, ref[200:])
+    np.testing.assert_array_equal(cp.dropped.moving, mov[200:])
+    assert np.isnan(cp.dropped.residuals).all()
 
 
 def test_client_points_on_the_border_are_kept():
