@@ -1,10 +1,14 @@
 """OGC API - Processes - Part 1: Core (OGC 18-062r2) over the job store of ``/v1``.
 
-One process, ``pwl-registration``, executed asynchronously only: ``POST
+One process, ``pwl-registration``, executed synchronously or asynchronously: ``POST
 /processes/pwl-registration/execution`` creates a job through the same function as ``POST
 /v1/jobs`` (:func:`service.api.jobs.submit`), with the same checks, limits, API keys and owner
-isolation; ``/jobs`` shows the same jobs as ``/v1/jobs``. The results document links the result
-files of ``/v1/jobs/{id}/...``, declared once in :data:`core.results.RESULTS`.
+isolation. With ``Prefer: respond-async`` the answer is the job (201); without, the request
+waits for the job, at most :data:`SYNC_WAIT_S` seconds (or the client's ``Prefer: wait``), and
+answers its results (200), or the job when it takes longer: the job is queued and runs
+whatever the answer, so nothing accepted is lost. ``/jobs`` shows the same jobs as
+``/v1/jobs``. The results document links the result files of ``/v1/jobs/{id}/...``, declared
+once in :data:`core.results.RESULTS`.
 
 The landing page ``/`` is negotiated: JSON for ``?f=json`` or an ``Accept`` header preferring
 ``application/json`` (and for clients that do not ask for HTML), otherwise the HTML page of the
@@ -14,6 +18,7 @@ viewer), or a redirect to ``/docs`` while there is none.
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import binascii
 import functools
@@ -21,6 +26,7 @@ import hashlib
 import inspect
 import json
 import math
+import time
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
@@ -28,7 +34,7 @@ from urllib.parse import urlencode
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi import Path as PathParam
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import RedirectResponse
+from fastapi.responses import JSONResponse, RedirectResponse
 from pydantic import ValidationError
 from python_multipart.multipart import parse_options_header
 
@@ -64,7 +70,7 @@ from pwlreg.service.schemas import (
     ProcessSummary,
     Results,
 )
-from pwlreg.service.store import Job, JobStatus
+from pwlreg.service.store import FINISHED, Job, JobStatus
 from pwlreg.service.uploads import OVERHEAD_BYTES, Part, ReceivedForm
 from pwlreg.service.webhooks import TargetError
 
@@ -83,6 +89,12 @@ CONFORMANCE = [
 duration filters of the job-list class; ``/openapi.json`` is OpenAPI 3.1, not the oas30 class."""
 
 JSON = "application/json"
+
+SYNC_WAIT_S = 20
+"""Longest time (seconds) a synchronous execution waits for its job before answering it
+asynchronously: shorter than the time outs of common HTTP clients and proxies (30-60 s), long
+enough for a registration of a few megapixels."""
+
 IMAGES = ("reference", "moving")
 INPUTS = (*IMAGES, "points", "options")
 IMAGE_MEDIA_TYPES = (
@@ -281,7 +293,7 @@ def process_description() -> dict[str, Any]:
         "triangle; the moving image is then resampled onto the reference.",
         keywords=["image registration", "piecewise linear", "mutual information",
                   "co-registration"],
-        jobControlOptions=["async-execute", "dismiss"],
+        jobControlOptions=["sync-execute", "async-execute", "dismiss"],
         outputTransmission=["reference"],
         inputs=inputs,
         outputs=outputs,
@@ -493,26 +505,85 @@ def _as_input(problem: Problem) -> Problem:
     return problem
 
 
+def preferences(request: Request) -> dict[str, str | None]:
+    """The preferences of the request's ``Prefer`` headers (RFC 7240): token (lower case) ->
+    value (None without one); parameters are ignored and the first of a repeated token
+    counts."""
+    found: dict[str, str | None] = {}
+    for header in request.headers.getlist("prefer"):
+        for item in header.split(","):
+            token, _, value = item.split(";")[0].partition("=")
+            token = token.strip().lower()
+            if token:
+                found.setdefault(token, value.strip().strip('"') or None)
+    return found
+
+
+def _sync_wait(prefer: dict[str, str | None]) -> tuple[float, str | None]:
+    """How long a synchronous execution waits, seconds, and the ``wait`` preference applied
+    (None when the client gave none, or none that is a number of seconds)."""
+    value = prefer.get("wait")
+    if value is None or not value.isdigit():
+        return SYNC_WAIT_S, None
+    wait = min(int(value), SYNC_WAIT_S)
+    return wait, f"wait={wait}"
+
+
+async def _finished(request: Request, services: Services, job: Job, wait: float) -> Job | None:
+    """``job`` once finished, or None if it is not within ``wait`` seconds or the client hung
+    up (the job runs on either way)."""
+    deadline = time.monotonic() + wait
+    pause = 0.05
+    while True:
+        current = await run_in_threadpool(services.store.get, job.id)
+        if current is None or current.status in FINISHED:
+            return current
+        left = deadline - time.monotonic()
+        if left <= 0 or await request.is_disconnected():
+            return None
+        # Quick jobs answer quickly; long ones cost the database a read every half second.
+        await asyncio.sleep(min(pause, left))
+        pause = min(2 * pause, 0.5)
+
+
+_MONITOR = {"description": "`</jobs/{jobId}>; rel=\"monitor\"`: the job that ran.",
+            "schema": {"type": "string"}}
+
+
 @router.post(
     "/processes/{processId}/execution",
     status_code=201,
     response_model=OgcStatusInfo,
     response_model_exclude_none=True,
     summary="Execute the process",
-    description="Create a job from an execute request (JSON). The process runs asynchronously "
-    "(with or without `Prefer: respond-async`): the answer is 201 with the job's status and "
-    "its URL in `Location`. Inputs are inline (images in base64 in a qualified value with "
+    description="Create a job from an execute request (JSON). With `Prefer: respond-async` "
+    "the answer is 201 with the job's status and its URL in `Location`. Without it the "
+    f"request waits for the job, at most {SYNC_WAIT_S} s (less with `Prefer: wait=<seconds>`): "
+    "200 with the results document (and the job in a `Link` header, `rel=monitor`) when it "
+    "succeeds, its error when it fails, and when it takes longer the 201 answer of an "
+    "asynchronous execution with `Preference-Applied: respond-async`; the job runs to its end "
+    "whatever the answer. Inputs are inline (images in base64 in a qualified value with "
     "their `mediaType`, points and options as JSON) or links (`href`) to origins the service "
     "reads from (PWLREG_HREF_ALLOW). Every check of `POST /v1/jobs` applies; errors name the "
     "input (`inputs.<id>`).",
     responses={
-        201: {"description": "Job created.", "headers": {
+        200: {"model": Results, "description": "Executed synchronously: the results.",
+              "headers": {"Link": _MONITOR, "Preference-Applied": {
+                  "description": "The `wait` preference, when given.",
+                  "schema": {"type": "string"}}}},
+        201: {"description": "Job created: asked for asynchronously, or longer than the "
+              "synchronous wait.", "headers": {
             "Location": {"description": "URL of the job's status.",
                          "schema": {"type": "string"}},
-            "Preference-Applied": {"description": "respond-async, when asked for.",
+            "Preference-Applied": {"description": "`respond-async` (and the `wait` "
+                                   "preference, when given).",
                                    "schema": {"type": "string"}}}},
         404: _OGC_404,
         **problem_responses(400, 401, 413, 415, 422, 429, 507),
+        500: {"model": ProblemDetails, "description": "Executed synchronously, the job failed "
+              "for a limit or an internal error (a job that cannot register its input "
+              "answers 422): its `error`, and the job in a `Link` header (`rel=monitor`).",
+              "headers": {"Link": _MONITOR}},
     },
     openapi_extra={"requestBody": {"required": True, "content": {
         JSON: {"schema": {"$ref": "#/components/schemas/ExecuteRequest"}}}}},
@@ -524,14 +595,16 @@ async def execute(
     client: ClientDep,
     process_id: Annotated[str, PathParam(alias="processId")],
     prefer: Annotated[
-        str | None, Header(description="`respond-async` (the only mode of this process).")
+        str | None,
+        Header(description="`respond-async`: answer with the job at once; `wait=<seconds>`: "
+               f"the longest a synchronous execution waits (at most {SYNC_WAIT_S})."),
     ] = None,
     idempotency_key: Annotated[
         str | None,
         Header(description="Client-chosen key; the same key with the same request returns the "
                "same job."),
     ] = None,
-) -> OgcStatusInfo:
+) -> Any:
     _check_process(process_id)
 
     async def receive(staging: Path) -> ReceivedForm:
@@ -541,11 +614,31 @@ async def execute(
         job, created = await jobs.submit(request, services, client, idempotency_key, receive)
     except Problem as problem:
         raise _as_input(problem) from None
-    response.headers["Location"] = f"{_root(request)}/jobs/{job.id}"
-    if prefer is not None and "respond-async" in prefer.lower():
-        response.headers["Preference-Applied"] = "respond-async"
-    if not created:
-        response.headers["Idempotent-Replayed"] = "true"
+    location = f"{_root(request)}/jobs/{job.id}"
+    replayed = {} if created else {"Idempotent-Replayed": "true"}
+    wanted = preferences(request)
+    applied = ["respond-async"]
+    if "respond-async" not in wanted:
+        wait, applied_wait = _sync_wait(wanted)
+        finished = await _finished(request, services, job, wait)
+        waited = [applied_wait] if applied_wait else []
+        monitor = {"Link": f'<{location}>; rel="monitor"', **replayed}
+        if waited:
+            monitor["Preference-Applied"] = ", ".join(waited)
+        if finished is not None and finished.status == JobStatus.successful:
+            results = _results(request, services, finished)
+            return JSONResponse(results.model_dump(mode="json", exclude_none=True),
+                                headers=monitor)
+        if finished is not None and finished.status == JobStatus.failed and finished.error:
+            problem = _failure(finished)
+            problem.headers.update(monitor)
+            raise problem
+        if finished is not None:
+            job = finished  # dismissed while waiting: its status says so
+        applied += waited
+    response.headers["Location"] = location
+    response.headers["Preference-Applied"] = ", ".join(applied)
+    response.headers.update(replayed)
     return status_info(job, request)
 
 
@@ -706,6 +799,11 @@ def get_results(
         raise OgcProblem(404, "result-not-ready", "Result not ready",
                          result_not_ready(job.id, job.status.value).detail,
                          job_id=job.id, job_status=job.status.value)
+    return _results(request, services, job)
+
+
+def _results(request: Request, services: Services, job: Job) -> Results:
+    """The results document of the successful ``job``: a link to each of its result files."""
     base = jobs.job_href(request, job.id)
     return Results({
         name: OgcLink(href=f"{base}/{RESULTS[name].route}", type=RESULTS[name].media_type,

@@ -201,10 +201,11 @@ def ogc_problem(response: httpx.Response, status: int, kind: str | None = None,
     return doc
 
 
-def wait(client: httpx.Client, href: str, timeout: float = 30.0) -> dict[str, Any]:
+def wait(client: httpx.Client, href: str, timeout: float = 30.0,
+         headers: dict[str, str] = ALICE) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     while True:
-        response = client.get(href, headers=ALICE)
+        response = client.get(href, headers=headers)
         assert response.status_code == 200, response.text
         status = check(response.json(), "statusInfo.yaml")
         if status["status"] in FINISHED or time.monotonic() > deadline:
@@ -233,7 +234,7 @@ def test_client_follows_the_links_from_the_landing_page_to_the_results(
         processes = client.get(link(landing_doc, f"{REL}processes")["href"], headers=ALICE)
         summaries = check(processes.json(), "processList.yaml")["processes"]
         assert [p["id"] for p in summaries] == ["pwl-registration"]
-        assert summaries[0]["jobControlOptions"] == ["async-execute", "dismiss"]
+        assert summaries[0]["jobControlOptions"] == ["sync-execute", "async-execute", "dismiss"]
 
         description = client.get(link(summaries[0], "self")["href"], headers=ALICE)
         process = check(description.json(), "process.yaml")
@@ -325,6 +326,178 @@ def test_points_and_both_images_by_reference_and_the_same_job_for_the_same_key(
         assert status["status"] == "successful", status
         full = client.get(link(status, "alternate")["href"], headers=ALICE).json()
         assert full["has_points"] is True
+
+
+# --- synchronous execution ----------------------------------------------------------------------
+
+
+def monitor(response: httpx.Response) -> str:
+    """The job of a synchronous answer, from its ``Link: <...>; rel="monitor"`` header."""
+    href, rel = response.headers["link"].split(";")
+    assert rel.strip() == 'rel="monitor"', response.headers["link"]
+    return href.strip().removeprefix("<").removesuffix(">")
+
+
+def test_without_prefer_the_execution_is_synchronous_and_lists_the_dropped_points(
+    ogc: Server, pair: Pair
+) -> None:
+    # A client pair the validation drops: a reference point given twice (the service refuses
+    # points outside the images before any job).
+    points = json.loads(pair.points_json)
+    points["reference"].append(points["reference"][3])
+    points["moving"].append([50.0, 50.0])
+    with ogc.client() as client:
+        answer = client.post("/processes/pwl-registration/execution",
+                             json=inline_request(pair, points=points), headers=ALICE)
+        assert answer.status_code == 200, answer.text
+        assert answer.headers["content-type"] == "application/json"
+        assert "location" not in answer.headers and "preference-applied" not in answer.headers
+        outputs = check(answer.json(), "results.yaml")
+        assert {"mesh", "registered", "tiepoints_geojson"} <= set(outputs) <= set(RESULTS)
+        job = check(client.get(monitor(answer), headers=ALICE).json(), "statusInfo.yaml")
+        assert job["status"] == "successful" and job["progress"] == 100
+        assert client.get(link(job, f"{REL}results")["href"], headers=ALICE).json() == outputs
+        ties = client.get(outputs["tiepoints_geojson"]["href"], headers=ALICE).json()
+        matching = client.get(outputs["mesh"]["href"], headers=ALICE).json()["matching"]
+    features = ties["features"]
+    kept = [f for f in features if f["properties"]["kept"]]
+    dropped = [f for f in features if not f["properties"]["kept"]]
+    assert len(kept) == len(matching["reference"]) and ties["source"] == "client"
+    assert [f["id"] for f in features] == list(range(len(features)))
+    assert {f["properties"]["reason"] for f in kept} == {None}
+    by_reason = {(f["properties"]["reason"], tuple(f["properties"]["reference_px"]),
+                  tuple(f["properties"]["moving_px"])) for f in dropped}
+    assert ("duplicate", tuple(round(x, 4) for x in points["reference"][3]), (50.0, 50.0)) in (
+        by_reason), by_reason
+    for feature in dropped:
+        assert feature["properties"]["status"] == "dropped"
+        # Pixels of the reference: the geometry is where the pair is in the reference.
+        assert feature["geometry"]["coordinates"] == feature["properties"]["reference_px"]
+        if feature["properties"]["reason"] != "epipolar":
+            assert feature["properties"]["residual_px"] is None
+    counted = {k: v for k, v in ties["dropped"].items() if v}
+    assert counted == {k: v for k, v in matching["rejected"].items() if v}
+    reasons = [f["properties"]["reason"] for f in dropped]
+    assert counted == {r: reasons.count(r) for r in set(reasons)}  # all listed, one by one
+
+
+def test_automatic_points_list_every_dropped_pair_with_its_cause(ogc: Server, pair: Pair
+                                                                   ) -> None:
+    body = inline_request(pair)
+    del body["inputs"]["points"]
+    with ogc.client() as client:
+        created = execute(client, body)
+        assert created.status_code == 201, created.text
+        status = wait(client, created.headers["location"], timeout=90)
+        assert status["status"] == "successful", status
+        outputs = client.get(link(status, f"{REL}results")["href"], headers=ALICE).json()
+        ties = client.get(outputs["tiepoints_geojson"]["href"], headers=ALICE).json()
+        matching = client.get(outputs["mesh"]["href"], headers=ALICE).json()["matching"]
+    assert ties["source"] in ("lk", "sift")
+    dropped = [f["properties"] for f in ties["features"] if not f["properties"]["kept"]]
+    kept = [f["properties"] for f in ties["features"] if f["properties"]["kept"]]
+    assert [k["reference_px"] for k in kept] == [[round(x, 4) for x in p]
+                                                 for p in matching["reference"]]
+    listed = ("thinned", "ambiguous", "disagreement", "low texture", "unverifiable",
+              "epipolar", "neighbours", "spread")
+    expected = {k: v for k, v in matching["rejected"].items() if k in listed and v}
+    assert expected  # the matcher dropped pairs: the test sees some
+    reasons = [d["reason"] for d in dropped]
+    assert {r: reasons.count(r) for r in set(reasons)} == expected
+    for d in dropped:
+        judged = d["reason"] in ("epipolar", "neighbours", "spread")
+        assert (d["residual_px"] is not None) == judged, d
+    # Every pair the matcher found consistent is in the file, kept or dropped.
+    assert len(kept) + len(dropped) == matching["counts"]["consistent"]
+
+
+def test_a_longer_synchronous_execution_answers_the_job(slow_server: Server, pair: Pair
+                                                         ) -> None:
+    # The slow runner spends 30 s before registering: longer than the client's wait.
+    with slow_server.client() as client:
+        started = time.monotonic()
+        answer = client.post("/processes/pwl-registration/execution", json=inline_request(pair),
+                             headers={"Prefer": "wait=1"})
+        elapsed = time.monotonic() - started
+        assert answer.status_code == 201, answer.text
+        assert 1.0 <= elapsed < 10.0
+        assert answer.headers["preference-applied"] == "respond-async, wait=1"
+        status = check(answer.json(), "statusInfo.yaml")
+        assert status["status"] in ("accepted", "running")
+        assert answer.headers["location"] == link(status, "self")["href"]
+        # Nothing is lost: the job is there and runs on (dismissed here to free the worker).
+        later = client.get(answer.headers["location"]).json()
+        assert later["jobID"] == status["jobID"] and later["status"] in ("accepted", "running")
+        assert client.delete(answer.headers["location"]).status_code == 200
+
+
+def test_a_failed_synchronous_execution_answers_its_error_and_the_job(ogc: Server) -> None:
+    flat = b64(cv2.imencode(".png", np.full((64, 64), 128, np.uint8))[1].tobytes())
+    with ogc.client() as client:
+        answer = client.post("/processes/pwl-registration/execution",
+                             json={"inputs": {"reference": flat, "moving": flat}},
+                             headers={**ALICE, "Prefer": "wait=15"})
+        doc = ogc_problem(answer, 422)
+        assert doc["type"].endswith("registration-failed")
+        assert answer.headers["preference-applied"] == "wait=15"
+        job = client.get(monitor(answer), headers=ALICE).json()
+        assert job["status"] == "failed" and job["jobID"] == doc["job_id"]
+
+
+# --- the job list --------------------------------------------------------------------------------
+
+
+def test_job_list_filters_and_pages(ogc: Server, pair: Pair) -> None:
+    # Bob's jobs: one of each final status, made here (the other tests submit as Alice).
+    flat = b64(cv2.imencode(".png", np.full((64, 64), 128, np.uint8))[1].tobytes())
+    with ogc.client() as client:
+        ids: dict[str, str] = {}
+        for status, body in (
+            ("failed", {"inputs": {"reference": flat, "moving": flat}}),
+            ("dismissed", inline_request(pair, options={"optimizer": "none"})),
+            ("successful", inline_request(pair, options={"optimizer": "none"})),
+        ):
+            created = execute(client, body, BOB)
+            assert created.status_code == 201, created.text
+            ids[status] = created.json()["jobID"]
+            if status == "dismissed":
+                assert client.delete(created.headers["location"], headers=BOB).is_success
+            assert wait(client, created.headers["location"], headers=BOB)["status"] == status
+
+        def listed(query: str) -> list[str]:
+            answer = client.get(f"/jobs?{query}", headers=BOB)
+            assert answer.status_code == 200, answer.text
+            doc = check(answer.json(), "jobList.yaml")
+            assert link(doc, "self")["href"].startswith("/jobs?")
+            return [j["jobID"] for j in doc["jobs"]]
+
+        newest_first = [ids["successful"], ids["dismissed"], ids["failed"]]
+        assert listed("") == newest_first
+        assert listed("status=successful") == [ids["successful"]]
+        assert listed("status=failed&status=dismissed") == [ids["dismissed"], ids["failed"]]
+        assert listed("status=running") == []
+        assert listed("processID=pwl-registration") == newest_first
+        assert listed("processID=other&processID=pwl-registration") == newest_first
+        assert listed("processID=other") == []
+        assert listed("type=process") == newest_first
+        assert listed("type=other") == []
+        assert listed("type=process&processID=pwl-registration&status=failed") == [ids["failed"]]
+
+        # Pages of one, following the next links; the filters stay in them.
+        for query, expected in (("limit=1", newest_first),
+                                ("limit=1&status=failed&status=successful",
+                                 [ids["successful"], ids["failed"]])):
+            seen, href = [], f"/jobs?{query}"
+            while href:
+                page = check(client.get(href, headers=BOB).json(), "jobList.yaml")
+                assert len(page["jobs"]) <= 1
+                seen += [j["jobID"] for j in page["jobs"]]
+                following = [li for li in page["links"] if li["rel"] == "next"]
+                href = following[0]["href"] if following else None
+            assert seen == expected, query
+
+        for bad in ("status=paused", "limit=0", "limit=10001", "limit=x"):
+            ogc_problem(client.get(f"/jobs?{bad}", headers=BOB), 422)
 
 
 # --- refusals -----------------------------------------------------------------------------------
