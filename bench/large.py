@@ -134,7 +134,8 @@ def _bands(v: np.ndarray, kind: str, moving: bool) -> np.ndarray:
     return np.stack([np.round(c * gain * 60000) for c in curves]).astype(np.uint16)
 
 
-def run_cli(reference: Path, moving: Path, points: Path, out: Path) -> tuple[float, float, str]:
+def run_cli(reference: Path, moving: Path, points: Path | None, out: Path
+            ) -> tuple[float, float, str]:
     """Seconds and peak resident memory (MB) of ``pwlreg register`` in a child process (the
     child's own peak, from ``wait4``)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -142,7 +143,8 @@ def run_cli(reference: Path, moving: Path, points: Path, out: Path) -> tuple[flo
         start = time.perf_counter()
         child = subprocess.Popen(
             [sys.executable, "-m", "pwlreg.service.cli", "register", str(reference),
-             str(moving), "--points", str(points), "--out", str(out), "--quiet"],
+             str(moving), *(["--points", str(points)] if points else []), "--out", str(out),
+             "--quiet"],
             stdout=stdout, stderr=stderr,
         )
         _, status, usage = os.wait4(child.pid, 0)
@@ -155,14 +157,15 @@ def run_cli(reference: Path, moving: Path, points: Path, out: Path) -> tuple[flo
         return seconds, usage.ru_maxrss / 1024, stdout.read().strip().splitlines()[-1]
 
 
-def mesh_error(out: Path, motion: Motion) -> float:
-    """Largest distance (px) between the result's moving vertices and the true map of their
-    reference vertices, over the measured vertices."""
+def mesh_error(out: Path, motion: Motion) -> tuple[float, float]:
+    """Median and largest distance (px) between the result's moving vertices and the true map
+    of their reference vertices, over the measured vertices."""
     doc = json.loads((out / "mesh.json").read_text())
     ref = np.asarray(doc["reference_vertices"], np.float64)
     mov = np.asarray(doc["moving_vertices"], np.float64)
     measured = ~np.asarray(doc.get("extrapolated", [False] * len(ref)), bool)
-    return float(np.abs(mov[measured] - motion.forward(ref[measured])).max())
+    error = np.linalg.norm(mov[measured] - motion.forward(ref[measured]), axis=1)
+    return float(np.median(error)), float(error.max())
 
 
 def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> None:
@@ -178,6 +181,7 @@ def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> 
     doc = json.loads(points.read_text())
     ref, mov = np.asarray(doc["reference"]), np.asarray(doc["moving"])
     tris = Delaunay(ref).simplices
+    threads = os.cpu_count() or 1  # as many as OpenCV's remap uses
     with RasterFile(moving) as source:
         image, _ = source.read(0, 0, source.width, source.height)
         shape = (source.height, source.width)
@@ -185,9 +189,10 @@ def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> 
         map_x = np.nan_to_num(map_x, nan=-1.0).astype(np.float32)
         map_y = np.nan_to_num(map_y, nan=-1.0).astype(np.float32)
         runs = {
-            "tiled, file": lambda: all(True for _ in warp_tiles(source, ref, mov, tris, shape)),
-            "tiled, memory": lambda: all(True for _ in warp_tiles(ArrayBands(image), ref, mov,
-                                                                  tris, shape)),
+            "tiled, file": lambda: all(True for _ in warp_tiles(
+                source, ref, mov, tris, shape, threads=threads)),
+            "tiled, memory": lambda: all(True for _ in warp_tiles(
+                ArrayBands(image), ref, mov, tris, shape, threads=threads)),
             "one cv2.remap": lambda: cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR),
         }
         best = {name: min(_timed(f) for _ in range(repeats)) for name, f in runs.items()}
@@ -210,6 +215,8 @@ def main(argv: list[str] | None = None) -> None:
                         choices=["grey", "multi"])
     parser.add_argument("--work", type=Path, help="keep the files here")
     parser.add_argument("--warp", action="store_true", help="only time the warp")
+    parser.add_argument("--automatic", action="store_true",
+                        help="register without the points (automatic matching)")
     args = parser.parse_args(argv)
     print(f"load average {os.getloadavg()[0]:.2f}, {os.cpu_count()} cores")
     with tempfile.TemporaryDirectory() as tmp:
@@ -224,10 +231,13 @@ def main(argv: list[str] | None = None) -> None:
                 if args.warp:
                     time_warp(reference, moving, points)
                     continue
-                seconds, peak, summary = run_cli(reference, moving, points, folder / "out")
-                error = mesh_error(folder / "out", motion)
-                print(f"{kind:5} {size:4d} MP: {seconds:6.1f} s, peak {peak:6.0f} MB, "
-                      f"vertex error max {error:.3f} px (pair written in {made:.0f} s)")
+                seconds, peak, summary = run_cli(reference, moving,
+                                                 None if args.automatic else points,
+                                                 folder / "out")
+                median, largest = mesh_error(folder / "out", motion)
+                print(f"{kind:5} {size:4d} MP: {seconds:6.1f} s, peak {peak:6.0f} MB, vertex "
+                      f"error median {median:.3f} / max {largest:.3f} px (pair written in "
+                      f"{made:.0f} s)")
                 print(f"  {summary}")
                 if not args.work:
                     for f in folder.rglob("*"):

@@ -13,7 +13,10 @@ Coordinates: pixels, x right, y down, (0, 0) the centre of the top-left pixel.
 
 from __future__ import annotations
 
+import threading
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -22,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from pwlreg.core.imaging import file_bands
-from pwlreg.core.kernels import _load_triangle, _row_range, row_span
+from pwlreg.core.kernels import _load_triangle, _row_range, row_span, to_fixed
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.warp import outer_edge_flags
 
@@ -116,19 +119,75 @@ class Tile:
     inside: np.ndarray
 
 
-@njit(cache=True)
+_OUTSIDE = -2.0
+"""``map_x`` of a pixel owned by a triangle but mapped outside the moving image; -1: owned by
+none yet. Both are outside any window, so ``remap`` gives them the border value."""
+
+
+@njit(cache=True, inline="always")
+def _sampled(ax, cx, ay, cy, x0, x, mw, mh):  # type: ignore[no-untyped-def]
+    mx = ax * (x + x0) + cx
+    my = ay * (x + x0) + cy
+    return mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1
+
+
+@njit(cache=True, inline="always")
+def _run_inside(lo, hi, ax, cx, ay, cy, x0, mw, mh):  # type: ignore[no-untyped-def]
+    """The columns of ``lo..hi`` whose map falls inside the moving image (an interval: the map
+    is affine along the row), found from the analytic bounds, then checked at its ends with the
+    per-pixel test so that rounding cannot move them."""
+    first, last = float(lo), float(hi)
+    for a, c, top in ((ax, cx, mw - 1.0), (ay, cy, mh - 1.0)):
+        if a > 0.0:
+            first = max(first, (0.0 - c) / a - x0)
+            last = min(last, (top - c) / a - x0)
+        elif a < 0.0:
+            first = max(first, (top - c) / a - x0)
+            last = min(last, (0.0 - c) / a - x0)
+        elif not (0.0 <= c <= top):
+            return 0, -1
+    if first > last + 1.0:
+        return 0, -1
+    vlo = max(lo, min(hi, int(np.ceil(first))))
+    while vlo > lo and _sampled(ax, cx, ay, cy, x0, vlo - 1, mw, mh):
+        vlo -= 1
+    while vlo <= hi and not _sampled(ax, cx, ay, cy, x0, vlo, mw, mh):
+        vlo += 1
+    if vlo > hi:
+        return 0, -1
+    vhi = max(vlo, min(hi, int(np.floor(last))))
+    while vhi < hi and _sampled(ax, cx, ay, cy, x0, vhi + 1, mw, mh):
+        vhi += 1
+    while vhi > vlo and not _sampled(ax, cx, ay, cy, x0, vhi, mw, mh):
+        vhi -= 1
+    return vlo, vhi
+
+
+@njit(cache=True, nogil=True)
 def _tile_maps(ref_tris, maps, closed, x0, y0, mw, mh, map_x, map_y):  # type: ignore[no-untyped-def]
-    """Fill ``map_x``/``map_y`` (float32, the tile's shape) with each owned pixel's position in
-    the moving image relative to the window it needs; -1 where the pixel is outside the mesh
-    or maps outside the moving image. ``ref_tris`` are shifted by ``(-x0, -y0)``.
+    """Fill ``map_x`` and ``map_y`` (float32, the tile's shape; ``map_x`` -1 on entry) with each
+    owned pixel's position in the moving image relative to the window it needs;
+    :data:`_OUTSIDE` in ``map_x`` where the pixel maps outside the moving image. ``ref_tris``
+    are shifted by ``(-x0, -y0)``.
 
     Returns the window ``(sx0, sy0, sx1, sy1)`` (end exclusive; empty when nothing maps).
-    Along a row of a triangle the map is affine, so the window comes from the runs' ends.
+    The runs of the fill rule (every pixel to one triangle of the reference triangulation) and
+    of the second pass that closes the mesh's outer edges are found once; along a run the map
+    is affine, so the window comes from the runs' ends, and the runs of the first pass are
+    written without a test per pixel (the second's only on pixels still unowned).
     """
     height, width = map_x.shape
     q = np.empty((3, 2), dtype=np.int64)
-    lo_x, lo_y, hi_x, hi_y = np.inf, np.inf, -np.inf, -np.inf
     n_tri = ref_tris.shape[0]
+    total = 0
+    for t in range(n_tri):
+        r0, r1 = _row_range(_load_rows(ref_tris[t], q), height)
+        if r1 >= r0:
+            total += (r1 - r0 + 1) * (2 if closed[t] else 1)
+    runs = np.empty((total, 6), np.int64)  # triangle, y, lo, hi, inside lo, inside hi
+    n = 0
+    lo_x, lo_y, hi_x, hi_y = np.inf, np.inf, -np.inf, -np.inf
+    first_pass = 0
     for second in range(2):
         for t in range(n_tri):
             mask = 0
@@ -142,58 +201,72 @@ def _tile_maps(ref_tris, maps, closed, x0, y0, mw, mh, map_x, map_y):  # type: i
             if flip < 0:
                 mask = (mask & 2) | ((mask & 1) << 2) | ((mask >> 2) & 1)
             r0, r1 = _row_range(q, height)
+            ax, ay = maps[t, 0, 0], maps[t, 1, 0]
             for y in range(r0, r1 + 1):
                 lo, hi = row_span(q, y, width, mask)
                 if lo > hi:
                     continue
                 gy = y + y0
-                for gx in (lo + x0, hi + x0):
-                    mx = min(max(maps[t, 0, 0] * gx + maps[t, 0, 1] * gy + maps[t, 0, 2], 0.0),
-                             mw - 1.0)
-                    my = min(max(maps[t, 1, 0] * gx + maps[t, 1, 1] * gy + maps[t, 1, 2], 0.0),
-                             mh - 1.0)
+                cx = maps[t, 0, 1] * gy + maps[t, 0, 2]
+                cy = maps[t, 1, 1] * gy + maps[t, 1, 2]
+                vlo, vhi = _run_inside(lo, hi, ax, cx, ay, cy, x0, mw, mh)
+                runs[n, 0], runs[n, 1], runs[n, 2], runs[n, 3] = t, y, lo, hi
+                runs[n, 4], runs[n, 5] = vlo, vhi
+                n += 1
+                if vlo > vhi:
+                    continue
+                for x in (vlo, vhi):
+                    mx = ax * (x + x0) + cx
+                    my = ay * (x + x0) + cy
                     lo_x = min(lo_x, mx)
                     hi_x = max(hi_x, mx)
                     lo_y = min(lo_y, my)
                     hi_y = max(hi_y, my)
+        if not second:
+            first_pass = n
     if lo_x > hi_x:
         return 0, 0, 0, 0
     sx0 = int(lo_x)
     sy0 = int(lo_y)
     sx1 = min(int(hi_x) + 2, mw)
     sy1 = min(int(hi_y) + 2, mh)
-    owned = np.zeros((height, width), dtype=np.uint8)
-    for second in range(2):
-        for t in range(n_tri):
-            mask = 0
-            if second:
-                if closed[t] == 0:
+    for r in range(n):
+        t, y, lo, hi, vlo, vhi = runs[r, 0], runs[r, 1], runs[r, 2], runs[r, 3], runs[r, 4], \
+            runs[r, 5]
+        if vlo > vhi:
+            vlo, vhi = hi + 1, hi
+        gy = y + y0
+        ax, ay = maps[t, 0, 0], maps[t, 1, 0]
+        cx = maps[t, 0, 1] * gy + maps[t, 0, 2] - sx0  # relative to the window
+        cy = maps[t, 1, 1] * gy + maps[t, 1, 2] - sy0
+        row_x = map_x[y]
+        row_y = map_y[y]
+        if r < first_pass:
+            for x in range(lo, vlo):
+                row_x[x] = _OUTSIDE
+            for x in range(vlo, vhi + 1):
+                row_x[x] = ax * (x + x0) + cx
+                row_y[x] = ay * (x + x0) + cy
+            for x in range(vhi + 1, hi + 1):
+                row_x[x] = _OUTSIDE
+        else:
+            for x in range(lo, hi + 1):
+                if row_x[x] != -1.0:
                     continue
-                mask = closed[t]
-            flip = _load_triangle(ref_tris[t], q)
-            if flip == 0:
-                continue
-            if flip < 0:
-                mask = (mask & 2) | ((mask & 1) << 2) | ((mask >> 2) & 1)
-            r0, r1 = _row_range(q, height)
-            ax, bx = maps[t, 0, 0], maps[t, 0, 1]
-            ay, by = maps[t, 1, 0], maps[t, 1, 1]
-            for y in range(r0, r1 + 1):
-                lo, hi = row_span(q, y, width, mask)
-                gy = y + y0
-                cx = bx * gy + maps[t, 0, 2]
-                cy = by * gy + maps[t, 1, 2]
-                for x in range(lo, hi + 1):
-                    if owned[y, x]:
-                        continue
-                    owned[y, x] = 1
-                    gx = x + x0
-                    mx = ax * gx + cx
-                    my = ay * gx + cy
-                    if mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1:
-                        map_x[y, x] = mx - sx0
-                        map_y[y, x] = my - sy0
+                if x < vlo or x > vhi:
+                    row_x[x] = _OUTSIDE
+                else:
+                    row_x[x] = ax * (x + x0) + cx
+                    row_y[x] = ay * (x + x0) + cy
     return sx0, sy0, sx1, sy1
+
+
+@njit(cache=True, inline="always")
+def _load_rows(tri, q):  # type: ignore[no-untyped-def]
+    """``q`` with the fixed-point rows of ``tri`` (for :func:`_row_range`)."""
+    for v in range(3):
+        q[v, 1] = to_fixed(tri[v, 1])
+    return q
 
 
 def warp_tiles(
@@ -205,8 +278,13 @@ def warp_tiles(
     *,
     tile: int = TILE,
     nodata: float = 0,
+    threads: int = 1,
 ) -> Iterator[Tile]:
     """The registered image as tiles, row of tiles by row of tiles, left to right.
+
+    ``threads`` tiles are computed at once (the map kernel and OpenCV release the GIL; the
+    source is read by one thread at a time, as a GDAL dataset must be), so the memory is that
+    many tiles and their windows.
 
     Parameters
     ----------
@@ -222,6 +300,8 @@ def warp_tiles(
         Tile side in pixels.
     nodata : float
         Value of the pixels that are not ``inside`` (cast to the source's dtype).
+    threads : int
+        Tiles computed at the same time.
 
     Yields
     ------
@@ -236,45 +316,66 @@ def warp_tiles(
     maps = affine_maps(ref_tris, mov_tris)
     closed = outer_edge_flags(tris)
     lo, hi = ref_tris.min(axis=1), ref_tris.max(axis=1)  # (T, 2) bounding boxes
-    for y0 in range(0, height, tile):
-        rows = min(tile, height - y0)
-        in_rows = (hi[:, 1] >= y0 - 1) & (lo[:, 1] <= y0 + rows)
-        for x0 in range(0, width, tile):
-            cols = min(tile, width - x0)
-            near = in_rows & (hi[:, 0] >= x0 - 1) & (lo[:, 0] <= x0 + cols)
-            yield _one_tile(source, ref_tris[near], maps[near], closed[near], x0, y0,
-                            rows, cols, nodata)
+    reads = threading.Lock()
+
+    def one(corner: tuple[int, int]) -> Tile:
+        x0, y0 = corner
+        rows, cols = min(tile, height - y0), min(tile, width - x0)
+        near = ((hi[:, 1] >= y0 - 1) & (lo[:, 1] <= y0 + rows)
+                & (hi[:, 0] >= x0 - 1) & (lo[:, 0] <= x0 + cols))
+        return _one_tile(source, ref_tris[near], maps[near], closed[near], x0, y0, rows, cols,
+                         nodata, reads)
+
+    corners = [(x0, y0) for y0 in range(0, height, tile) for x0 in range(0, width, tile)]
+    if threads <= 1:
+        yield from map(one, corners)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        pending: deque[Future[Tile]] = deque()
+        for corner in corners:
+            pending.append(pool.submit(one, corner))
+            if len(pending) > threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
 
 
 def _one_tile(source: BandSource, ref_tris: np.ndarray, maps: np.ndarray, closed: np.ndarray,
-              x0: int, y0: int, rows: int, cols: int, nodata: float) -> Tile:
-    out = np.full((rows, cols, source.count), nodata, dtype=source.dtype)
-    inside = np.zeros((rows, cols), bool)
-    if not len(ref_tris):
-        return Tile(x0, y0, out, inside)
+              x0: int, y0: int, rows: int, cols: int, nodata: float,
+              reads: threading.Lock) -> Tile:
     map_x = np.full((rows, cols), -1.0, np.float32)
     map_y = np.zeros((rows, cols), np.float32)
-    shifted = np.ascontiguousarray(ref_tris - np.array([x0, y0], np.float64))
-    sx0, sy0, sx1, sy1 = _tile_maps(shifted, maps, closed, x0, y0, source.width,
-                                    source.height, map_x, map_y)
+    window = (0, 0, 0, 0)
+    if len(ref_tris):
+        shifted = np.ascontiguousarray(ref_tris - np.array([x0, y0], np.float64))
+        window = _tile_maps(shifted, maps, closed, x0, y0, source.width, source.height, map_x,
+                            map_y)
+    sx0, sy0, sx1, sy1 = window
     if sx1 <= sx0 or sy1 <= sy0:
-        return Tile(x0, y0, out, inside)
+        out = np.full((rows, cols, source.count), nodata, dtype=source.dtype)
+        return Tile(x0, y0, out, np.zeros((rows, cols), bool))
     inside = map_x >= 0
-    part, valid = source.read(sx0, sy0, sx1, sy1)
+    with reads:
+        part, valid = source.read(sx0, sy0, sx1, sy1)
     if valid is not None:
         if part.dtype.kind == "f":  # a NaN weighted 0 still makes NaN: only finite samples
             part = np.where(valid[:, :, None], part, 0)
         ok = cv2.remap(valid.astype(np.uint8) * np.uint8(255), map_x, map_y, cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
+                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         inside &= ok == 255
     exact = part.dtype in _REMAP_DTYPES
+    chunks = []
     for c0 in range(0, source.count, 4):  # remap takes up to 4 channels at once
         chunk = np.ascontiguousarray(part[:, :, c0:c0 + 4])
+        # Unmapped pixels point outside the window: the border value is their nodata.
         warped = cv2.remap(chunk if exact else chunk.astype(np.float64), map_x, map_y,
-                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        warped = warped.reshape(rows, cols, -1)
-        if not exact:
-            info = np.iinfo(source.dtype)
-            warped = np.clip(np.round(warped), info.min, info.max)
-        np.copyto(out[:, :, c0:c0 + 4], warped, where=inside[:, :, None], casting="unsafe")
+                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                           borderValue=(nodata,) * 4)
+        chunks.append(warped.reshape(rows, cols, -1))
+    out = chunks[0] if len(chunks) == 1 else np.concatenate(chunks, axis=2)
+    if not exact:
+        info = np.iinfo(source.dtype)
+        out = np.clip(np.round(out), info.min, info.max).astype(source.dtype)
+    if valid is not None:
+        out[~inside] = np.array(nodata).astype(source.dtype)
     return Tile(x0, y0, out, inside)

@@ -161,8 +161,8 @@ def cmd_register(args: argparse.Namespace) -> int:
             result = register(reference, moving, points=points, options=options,
                               progress=progress)
         pictures = (None if hasattr(i, "close") else i for i in (reference, moving))
-        write_outputs(result, args.out, sources=Sources(*pictures, Path(args.reference),
-                                                        Path(args.moving)))
+        write_outputs(result, args.out, sources=Sources(
+            *pictures, Path(args.reference), Path(args.moving), threads=os.cpu_count() or 1))
     except UnreliableResultError as exc:
         raise CommandError(str(exc), UNRELIABLE_EXIT) from None
     except InputError as exc:

@@ -404,7 +404,8 @@ def _write_tiles(result: RegistrationResult, source: BandSource, geo: Georeferen
         "zlevel": 1, "bigtiff": "if_safer", "num_threads": max(1, threads),
     }
     tiles = warp_tiles(source, result.reference_vertices, result.moving_vertices,
-                       result.final_triangles, (height, width), nodata=nodata)
+                       result.final_triangles, (height, width), nodata=nodata,
+                       threads=threads)
     with rasterio.Env(ZLEVEL_OVERVIEW=1, GDAL_CACHEMAX=CACHE_BYTES), \
             rasterio.open(path, "w", **profile) as dst:
         if colour:

@@ -194,7 +194,7 @@ def write_registered(result: RegistrationResult, sources: Sources, path: Path) -
         picture = _tile_picture(source.count, getattr(result, "moving_recipe", None),
                                 result.options.band)
         tiles = warp_tiles(source, result.reference_vertices, result.moving_vertices,
-                           result.final_triangles, (height, width))
+                           result.final_triangles, (height, width), threads=sources.threads)
         writer = None
         strip: list[np.ndarray] = []
         for tile in tiles:
