@@ -341,12 +341,16 @@ def _scaled_points(points: ConjugatePoints, scale: np.ndarray) -> ConjugatePoint
     model = points.epipolar
     if model is not None:
         model = _scaled_model(model, scale, mean)
+    dropped = points.dropped
     return replace(
         points,
         reference=up(points.reference, scale[0]),
         moving=up(points.moving, scale[1]),
         residuals=np.asarray(points.residuals, np.float64) * mean,
         epipolar=model,
+        dropped=replace(dropped, reference=up(dropped.reference, scale[0]),
+                        moving=up(dropped.moving, scale[1]),
+                        residuals=np.asarray(dropped.residuals, np.float64) * mean),
     )
 
 

@@ -177,7 +177,12 @@ def test_levels_keep_the_clients_points_exactly():
     rng = np.random.default_rng(2)
     ref_pts = rng.uniform([30, 30], [1100, 800], size=(150, 2))
     mov_pts = ref_pts @ forward[:, :2].T + forward[:, 2]
+    mov_pts[:3] += 5000  # outside the moving image: dropped, and listed where the client put them
     result = register(reference, moving, (ref_pts, mov_pts), NO_FILTER, level_pixels=1 << 17)
+    dropped = result.points.dropped
+    np.testing.assert_allclose(dropped.reference, ref_pts[:3], atol=1e-9)
+    np.testing.assert_allclose(dropped.moving, mov_pts[:3], atol=1e-9)
+    ref_pts, mov_pts = ref_pts[3:], mov_pts[3:]
     assert isinstance(result, ScaledResult) and result.scales[0, 0] == 3
     assert result.reference_size == (1200, 900)
     measured = ~np.asarray(result.extrapolated, bool)
