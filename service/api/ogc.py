@@ -27,6 +27,8 @@ import inspect
 import json
 import math
 import time
+from collections.abc import Callable
+from datetime import datetime
 from pathlib import Path
 from typing import Annotated, Any, Literal
 from urllib.parse import urlencode
@@ -70,7 +72,7 @@ from pwlreg.service.schemas import (
     ProcessSummary,
     Results,
 )
-from pwlreg.service.store import FINISHED, Job, JobStatus
+from pwlreg.service.store import FINISHED, Job, JobStatus, utcnow
 from pwlreg.service.uploads import OVERHEAD_BYTES, Part, ReceivedForm
 from pwlreg.service.webhooks import TargetError
 
@@ -84,9 +86,9 @@ CONFORMANCE = [
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/ogc-process-description",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/json",
     "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss",
+    "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list",
 ]
-"""Classes implemented in full. ``/jobs`` lists jobs but without the ``datetime`` and
-duration filters of the job-list class; ``/openapi.json`` is OpenAPI 3.1, not the oas30 class."""
+"""Classes implemented in full (``/openapi.json`` is OpenAPI 3.1, not the oas30 class)."""
 
 JSON = "application/json"
 
@@ -505,12 +507,11 @@ def _as_input(problem: Problem) -> Problem:
     return problem
 
 
-def preferences(request: Request) -> dict[str, str | None]:
-    """The preferences of the request's ``Prefer`` headers (RFC 7240): token (lower case) ->
-    value (None without one); parameters are ignored and the first of a repeated token
-    counts."""
+def preferences(headers: list[str]) -> dict[str, str | None]:
+    """The preferences of ``Prefer`` headers (RFC 7240): token (lower case) -> value (None
+    without one); parameters are ignored and the first of a repeated token counts."""
     found: dict[str, str | None] = {}
-    for header in request.headers.getlist("prefer"):
+    for header in headers:
         for item in header.split(","):
             token, _, value = item.split(";")[0].partition("=")
             token = token.strip().lower()
@@ -595,7 +596,7 @@ async def execute(
     client: ClientDep,
     process_id: Annotated[str, PathParam(alias="processId")],
     prefer: Annotated[
-        str | None,
+        list[str] | None,
         Header(description="`respond-async`: answer with the job at once; `wait=<seconds>`: "
                f"the longest a synchronous execution waits (at most {SYNC_WAIT_S})."),
     ] = None,
@@ -616,7 +617,7 @@ async def execute(
         raise _as_input(problem) from None
     location = f"{_root(request)}/jobs/{job.id}"
     replayed = {} if created else {"Idempotent-Replayed": "true"}
-    wanted = preferences(request)
+    wanted = preferences(prefer or [])
     applied = ["respond-async"]
     if "respond-async" not in wanted:
         wait, applied_wait = _sync_wait(wanted)
@@ -691,12 +692,81 @@ def _job(services: Services, job_id: str, client: str | None) -> Job:
     return job
 
 
+SCAN_PAGE = 500
+"""Jobs read from the store at a time when the list is filtered by ``datetime`` or duration,
+which the store does not select by."""
+
+
+def _instant(value: str) -> datetime:
+    parsed = datetime.fromisoformat(value)
+    if parsed.tzinfo is None:
+        raise ValueError("no time zone")
+    return parsed
+
+
+def _interval(value: str) -> tuple[datetime | None, datetime | None]:
+    """The ``datetime`` parameter as its inclusive bounds (None for an open end)."""
+    try:
+        if "/" not in value:
+            return _instant(value), _instant(value)
+        start, end = (None if b in ("", "..") else _instant(b) for b in value.split("/"))
+        if start is None and end is None:
+            raise ValueError("both ends open")
+        if start is not None and end is not None and start > end:
+            raise ValueError("the end is before the start")
+    except ValueError:
+        raise invalid_input(
+            f"datetime: {value!r} is neither an RFC 3339 date-time with its time zone nor an "
+            "interval start/end of them ('..' or nothing for an open end)", "datetime"
+        ) from None
+    return start, end
+
+
+def duration(job: Job, now: datetime) -> float | None:
+    """How long ``job`` has run (running) or ran (finished), seconds; None for a job that has
+    not started or whose times are not all known."""
+    if job.started is None:
+        return None
+    if job.status == JobStatus.running:
+        return (now - job.started).total_seconds()
+    if job.status in FINISHED and job.finished is not None:
+        return (job.finished - job.started).total_seconds()
+    return None
+
+
+def _scan(services: Services, statuses: list[JobStatus], owner: str | None,
+          keep: Callable[[Job], bool], since: datetime | None, limit: int, offset: int
+          ) -> tuple[list[Job], bool]:
+    """A page (``limit`` after ``offset``) of the jobs ``keep`` selects, newest first, and
+    whether more follow; none created before ``since`` is read beyond the first."""
+    found: list[Job] = []
+    skip, at = offset, 0
+    while True:
+        batch, matched = services.store.list(statuses, limit=SCAN_PAGE, offset=at, owner=owner)
+        for job in batch:
+            if since is not None and job.created < since:
+                return found, False  # newest first: every further job is older
+            if not keep(job):
+                continue
+            if skip:
+                skip -= 1
+            elif len(found) == limit:
+                return found, True
+            else:
+                found.append(job)
+        at += len(batch)
+        if not batch or at >= matched:
+            return found, False
+
+
 @router.get(
     "/jobs",
     response_model=OgcJobList,
     response_model_exclude_none=True,
     summary="Jobs",
-    description="The client's jobs (the same as GET /v1/jobs), newest first, a page at a time.",
+    description="The client's jobs (the same as GET /v1/jobs), newest first, a page at a time, "
+    "selected as in the job-list class of OGC API - Processes: by status, process, type, "
+    "creation time and duration. The `next` link gives the following page.",
     responses=problem_responses(401, 422),
 )
 def list_jobs(
@@ -707,27 +777,62 @@ def list_jobs(
     process_id: Annotated[
         list[str] | None, Query(alias="processID", description="Only jobs of these processes.")
     ] = None,
-    type: Annotated[list[str] | None, Query(description="Only jobs of these types.")] = None,
+    type: Annotated[list[str] | None, Query(
+        description="Only jobs of these types (`process`: all the jobs of this service).")] = None,
+    when: Annotated[str | None, Query(
+        alias="datetime",
+        description="Only jobs created at this RFC 3339 date-time (with its time zone), or in "
+        "this interval: `start/end`, `../end`, `start/..` (bounds included).",
+        examples=["2026-11-24T00:00:00Z/.."])] = None,
+    min_duration: Annotated[int | None, Query(
+        alias="minDuration", ge=0,
+        description="Only jobs that ran (finished) or have run (running) at least this many "
+        "seconds from their start; jobs not started are left out, and without `status` only "
+        "running and finished jobs are considered.")] = None,
+    max_duration: Annotated[int | None, Query(
+        alias="maxDuration", ge=0,
+        description="Only jobs that ran or have run at most this many seconds (as "
+        "`minDuration`).")] = None,
     limit: Annotated[int, Query(ge=1, le=10000, description="Jobs per page.")] = 10,
     offset: Annotated[
         int, Query(ge=0, le=2**53 - 1, description="Jobs to skip (newest first).")
     ] = 0,
 ) -> OgcJobList:
     statuses = status or []
+    start, end = _interval(when) if when is not None else (None, None)
+    timed = min_duration is not None or max_duration is not None
     if (process_id and PROCESS_ID not in process_id) or (type and "process" not in type):
-        found, matched = [], 0
+        found, more = [], False
+    elif when is not None or timed:
+        now = utcnow()
+
+        def keep(job: Job) -> bool:
+            if end is not None and job.created > end:
+                return False
+            if not timed:
+                return True
+            took = duration(job, now)
+            return took is not None and (min_duration is None or took >= min_duration) and (
+                max_duration is None or took <= max_duration)
+
+        found, more = _scan(services, statuses, client, keep, start, limit, offset)
     else:
         found, matched = services.store.list(statuses, limit=limit, offset=offset, owner=client)
+        more = offset + len(found) < matched
 
     def page(at: int) -> str:
         query: list[tuple[str, Any]] = [("status", s.value) for s in statuses]
         query += [("processID", p) for p in process_id or []]
         query += [("type", t) for t in type or []]
+        for name, value in (("datetime", when), ("minDuration", min_duration),
+                            ("maxDuration", max_duration)):
+            if value is not None:
+                query.append((name, value))
         query += [("limit", limit), ("offset", at)]
         return f"/jobs?{urlencode(query)}"
 
     links = [_link(request, page(offset), "self", "This page")]
-    if offset + len(found) < matched:
+    if more:
         links.append(_link(request, page(offset + limit), "next", "Next page"))
     if offset > 0:
         links.append(_link(request, page(max(0, offset - limit)), "prev", "Previous page"))

@@ -14,6 +14,7 @@ import json
 import threading
 import time
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime, timedelta
 from functools import cache
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -230,6 +231,7 @@ def test_client_follows_the_links_from_the_landing_page_to_the_results(
         classes = check(conformance.json(), "confClasses.yaml")["conformsTo"]
         assert "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/core" in classes
         assert "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/dismiss" in classes
+        assert "http://www.opengis.net/spec/ogcapi-processes-1/1.0/conf/job-list" in classes
 
         processes = client.get(link(landing_doc, f"{REL}processes")["href"], headers=ALICE)
         summaries = check(processes.json(), "processList.yaml")["processes"]
@@ -464,8 +466,8 @@ def test_job_list_filters_and_pages(ogc: Server, pair: Pair) -> None:
                 assert client.delete(created.headers["location"], headers=BOB).is_success
             assert wait(client, created.headers["location"], headers=BOB)["status"] == status
 
-        def listed(query: str) -> list[str]:
-            answer = client.get(f"/jobs?{query}", headers=BOB)
+        def listed(query: str | dict[str, Any]) -> list[str]:
+            answer = client.get("/jobs", params=query, headers=BOB)
             assert answer.status_code == 200, answer.text
             doc = check(answer.json(), "jobList.yaml")
             assert link(doc, "self")["href"].startswith("/jobs?")
@@ -496,8 +498,70 @@ def test_job_list_filters_and_pages(ogc: Server, pair: Pair) -> None:
                 href = following[0]["href"] if following else None
             assert seen == expected, query
 
-        for bad in ("status=paused", "limit=0", "limit=10001", "limit=x"):
+        # Creation time: an instant, or an interval with both ends included.
+        jobs = {s: client.get(f"/jobs/{i}", headers=BOB).json() for s, i in ids.items()}
+        middle = jobs["dismissed"]["created"]
+        assert listed({"datetime": f"{middle}/.."}) == newest_first[:2]
+        assert listed({"datetime": f"/{middle}"}) == newest_first[1:]
+        assert listed({"datetime": f"{middle}/{middle}"}) == [ids["dismissed"]]
+        assert listed({"datetime": middle, "status": "dismissed"}) == [ids["dismissed"]]
+        assert listed({"datetime": middle, "status": "failed"}) == []
+        assert listed({"datetime": f"{jobs['failed']['created']}/{middle}", "limit": 1}) == [
+            ids["dismissed"]]
+        assert listed({"datetime": "2000-01-01T00:00:00+01:00/2001-01-01T00:00:00Z"}) == []
+        # Duration (finished - started): the two jobs that ran took well under an hour; a job
+        # that never started has none.
+        ran = {s for s, j in jobs.items() if j.get("started") and j.get("finished")}
+        assert {"successful", "failed"} <= ran
+        assert set(listed({"minDuration": 0})) == {ids[s] for s in ran}
+        assert listed({"maxDuration": 3600, "status": "successful"}) == [ids["successful"]]
+        assert listed({"minDuration": 3600}) == []
+        assert listed({"minDuration": 0, "status": "accepted"}) == []
+        took = (datetime.fromisoformat(jobs["successful"]["finished"])
+                - datetime.fromisoformat(jobs["successful"]["started"])).total_seconds()
+        assert listed({"minDuration": int(took), "maxDuration": int(took) + 1,
+                       "status": "successful"}) == [ids["successful"]]
+        seen, href = [], "/jobs?limit=1&minDuration=0&status=successful&status=failed"
+        while href:  # the next links keep the duration
+            page = check(client.get(href, headers=BOB).json(), "jobList.yaml")
+            seen += [j["jobID"] for j in page["jobs"]]
+            href = next((li["href"] for li in page["links"] if li["rel"] == "next"), None)
+        assert seen == [ids["successful"], ids["failed"]]
+
+        for bad in ("status=paused", "limit=0", "limit=10001", "limit=x", "minDuration=-1",
+                    "datetime=yesterday", "datetime=../..", "datetime=2026-01-01",
+                    f"datetime={jobs['failed']['created']}/2000-01-01T00:00:00Z",
+                    "datetime=2026-01-01T00:00:00Z/2026-01-02T00:00:00Z/2026-01-03T00:00:00Z"):
             ogc_problem(client.get(f"/jobs?{bad}", headers=BOB), 422)
+
+
+def test_filtered_pages_are_read_from_the_store_in_batches() -> None:
+    # The datetime and duration filters select in the API, reading SCAN_PAGE jobs at a time:
+    # the pages must be those of the filtered list, across batches, and stop at `since`.
+    from types import SimpleNamespace
+
+    from pwlreg.service.api.ogc import SCAN_PAGE, _scan
+
+    base = datetime(2026, 1, 1, tzinfo=UTC)
+    jobs = [SimpleNamespace(n=n, created=base - timedelta(minutes=n))
+            for n in range(3 * SCAN_PAGE)]  # newest first
+    reads: list[int] = []
+
+    def read(statuses: Any, limit: int, offset: int, owner: Any) -> tuple[list[Any], int]:
+        reads.append(offset)
+        return jobs[offset:offset + limit], len(jobs)
+
+    services = SimpleNamespace(store=SimpleNamespace(list=read))
+    selected = [j for j in jobs if j.n % 3 == 0]
+    for offset, limit in ((0, 10), (160, 7), (330, 20), (480, 20), (495, 10)):
+        page, more = _scan(services, [], None, lambda j: j.n % 3 == 0, None, limit, offset)
+        assert page == selected[offset:offset + limit]
+        assert more == (offset + limit < len(selected)), (offset, limit)
+    reads.clear()
+    since = jobs[SCAN_PAGE + 10].created
+    page, more = _scan(services, [], None, lambda j: j.n % 2 == 0, since, 1000, 0)
+    assert page == [j for j in jobs[:SCAN_PAGE + 11] if j.n % 2 == 0] and not more
+    assert reads == [0, SCAN_PAGE]  # nothing older than `since` was read past its batch
 
 
 # --- refusals -----------------------------------------------------------------------------------
