@@ -25,6 +25,7 @@ import functools
 import hashlib
 import inspect
 import json
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -47,6 +48,7 @@ from pwlreg.service.api.system import describe_options
 from pwlreg.service.auth import ClientDep, bearer, get_client
 from pwlreg.service.deps import Services, ServicesDep, get_services
 from pwlreg.service.hrefs import FetchError, HrefAllowList, TooLarge, fetch_href
+from pwlreg.service.logs import job_extra
 from pwlreg.service.problems import (
     TYPE_PREFIX,
     Problem,
@@ -77,6 +79,7 @@ from pwlreg.service.uploads import OVERHEAD_BYTES, Part, ReceivedForm
 from pwlreg.service.webhooks import TargetError
 
 router = APIRouter(tags=["ogc"])
+log = logging.getLogger(__name__)
 
 PROCESS_ID = "pwl-registration"
 REL = "http://www.opengis.net/def/rel/ogc/1.0/"
@@ -524,7 +527,7 @@ def _sync_wait(prefer: dict[str, str | None]) -> tuple[float, str | None]:
     """How long a synchronous execution waits, seconds, and the ``wait`` preference applied
     (None when the client gave none, or none that is a number of seconds)."""
     value = prefer.get("wait")
-    if value is None or not value.isdigit():
+    if value is None or not (value.isascii() and value.isdigit()):
         return SYNC_WAIT_S, None
     wait = min(int(value), SYNC_WAIT_S)
     return wait, f"wait={wait}"
@@ -540,7 +543,11 @@ async def _finished(request: Request, services: Services, job: Job, wait: float)
         if current is None or current.status in FINISHED:
             return current
         left = deadline - time.monotonic()
-        if left <= 0 or await request.is_disconnected():
+        if left <= 0:
+            return None
+        if await request.is_disconnected():
+            log.info("job %s: the client stopped waiting; the job runs on", job.id,
+                     extra=job_extra(job.id, job.owner))
             return None
         # Quick jobs answer quickly; long ones cost the database a read every half second.
         await asyncio.sleep(min(pause, left))

@@ -433,6 +433,21 @@ def test_a_longer_synchronous_execution_answers_the_job(slow_server: Server, pai
         assert client.delete(answer.headers["location"]).status_code == 200
 
 
+def test_a_client_that_stops_waiting_loses_no_job(slow_server: Server, pair: Pair) -> None:
+    key = {"Idempotency-Key": "sync-hang-up"}
+    with httpx.Client(base_url=slow_server.url, timeout=1.0) as impatient:
+        with pytest.raises(httpx.ReadTimeout):
+            impatient.post("/processes/pwl-registration/execution", json=inline_request(pair),
+                           headers=key)
+    with slow_server.client() as client:
+        # The same request again finds the job the first one created, queued or running.
+        again = client.post("/processes/pwl-registration/execution",
+                            json=inline_request(pair), headers={**key, "Prefer": "respond-async"})
+        assert again.status_code == 201 and again.headers["idempotent-replayed"] == "true"
+        assert again.json()["status"] in ("accepted", "running")
+        assert client.delete(again.headers["location"]).status_code == 200
+
+
 def test_a_failed_synchronous_execution_answers_its_error_and_the_job(ogc: Server) -> None:
     flat = b64(cv2.imencode(".png", np.full((64, 64), 128, np.uint8))[1].tobytes())
     with ogc.client() as client:
