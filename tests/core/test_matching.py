@@ -24,6 +24,7 @@ from pwlreg.core.matching import (
     spread_points,
 )
 from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.scaled import register as register_on_levels
 
 MAX_INLIER_LOSS = 0.01  # stated rate for client points with 0.3 px noise at a 1.5 px threshold
 
@@ -273,6 +274,21 @@ def test_ambiguous_pairs_on_a_repeated_patch_are_listed_where_the_pattern_is():
     assert len(ambiguous) >= 10
     assert np.all((ambiguous >= [150, 100]) & (ambiguous <= [330, 260]))  # the board, +10 px
     assert len(cp) + len(cp.dropped) == cp.counts["consistent"]
+
+
+def test_dropped_pairs_of_a_registration_on_levels_come_back_at_full_resolution():
+    ref = cv2.resize(texture(seed=2), (960, 720), interpolation=cv2.INTER_CUBIC)
+    H = homography(centre=(480, 360), tx=20.0, ty=-12.0)
+    result = register_on_levels(ref, warp(ref, H), None, {"max_points": 150},
+                                level_pixels=200_000)
+    assert result.scales.tolist() == [[2.0, 2.0], [2.0, 2.0]]  # matched on half-size levels
+    dropped = result.points.dropped
+    assert dropped_counts(result.points) == listed_counts(result.points)
+    good = np.isin(dropped.reason, ["thinned", "spread"])
+    assert good.sum() > 50
+    # Full-resolution pixels: the true map holds them (on the level they would be ~2x off).
+    assert np.median(transfer_error(H, dropped.reference[good], dropped.moving[good])) < 0.5
+    assert dropped.reference[:, 0].max() > 500
 
 
 # --- client points --------------------------------------------------------------------------------
