@@ -28,7 +28,9 @@ on a repeated pattern, or whose correlation peak is not where the matcher put it
 then go through the robust epipolar filter (:mod:`core.epipolar`), a check against the local map
 of their neighbours (:func:`core.reliability.neighbour_outliers`) and a spatial suppression that
 keeps the strongest pairs with a minimum distance between reference points and at most
-``max_points`` of them, spread over the overlap by a grid.
+``max_points`` of them, spread over the overlap by a grid. Every pair these steps drop (and
+every client pair the validation or the filter drops) stays in the result with its cause
+(:class:`DroppedPairs`), for the tie-point listing of ``tiepoints.geojson``.
 
 Conventions: images are OpenCV arrays (grey ``(H, W)`` or BGR(A) ``(H, W, C)``, uint8 or
 uint16); matching runs on their 8-bit luminance (:func:`core.imaging.to_gray8`). Point arrays are
