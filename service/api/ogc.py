@@ -523,14 +523,14 @@ def preferences(headers: list[str]) -> dict[str, str | None]:
     return found
 
 
-def _sync_wait(prefer: dict[str, str | None]) -> tuple[float, str | None]:
+def _sync_wait(prefer: dict[str, str | None]) -> tuple[float, list[str]]:
     """How long a synchronous execution waits, seconds, and the ``wait`` preference applied
-    (None when the client gave none, or none that is a number of seconds)."""
+    (none when the client gave none, or none that is a number of seconds)."""
     value = prefer.get("wait")
     if value is None or not (value.isascii() and value.isdigit()):
-        return SYNC_WAIT_S, None
+        return SYNC_WAIT_S, []
     wait = min(int(value), SYNC_WAIT_S)
-    return wait, f"wait={wait}"
+    return wait, [f"wait={wait}"]
 
 
 async def _finished(request: Request, services: Services, job: Job, wait: float) -> Job | None:
@@ -627,9 +627,8 @@ async def execute(
     wanted = preferences(prefer or [])
     applied = ["respond-async"]
     if "respond-async" not in wanted:
-        wait, applied_wait = _sync_wait(wanted)
+        wait, waited = _sync_wait(wanted)
         finished = await _finished(request, services, job, wait)
-        waited = [applied_wait] if applied_wait else []
         monitor = {"Link": f'<{location}>; rel="monitor"', **replayed}
         if waited:
             monitor["Preference-Applied"] = ", ".join(waited)
