@@ -158,10 +158,14 @@ RESULTS: dict[str, ResultFormat] = {
         ResultFormat(
             "tiepoints_geojson", "tiepoints.geojson", "tiepoints.geojson", geojson.MEDIA_TYPE,
             "Tie points as GeoJSON points",
-            "tiepoints.geojson: one Point per conjugate pair the mesh stands on (reference "
-            "position) with reference_px, moving_px, moving_position (georeferenced moving "
-            "image), residual_px (epipolar) and status; the pairs dropped per cause in the "
-            "member dropped. Same coordinates as mesh.geojson.",
+            "tiepoints.geojson: one Point per conjugate pair at its reference position: the "
+            "pairs the mesh stands on first (id = index in mesh.json's matching.reference), "
+            "then every pair dropped on the way; reference_px, moving_px, moving_position "
+            "(georeferenced moving image), residual_px (epipolar; null where none judged the "
+            "pair), kept, reason (null, or thinned, ambiguous, disagreement, low texture, "
+            "unverifiable, epipolar, neighbours, spread; for client points not finite, outside "
+            "image, duplicate, epipolar) and status (kept/dropped); the member dropped counts "
+            "them per cause. Same coordinates as mesh.geojson.",
             _write_json(geojson.tiepoints_collection, sources=True),
         ),
         ResultFormat(
