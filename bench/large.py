@@ -168,7 +168,7 @@ def mesh_error(out: Path, motion: Motion) -> tuple[float, float]:
     return float(np.median(error)), float(error.max())
 
 
-def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 3) -> None:
+def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 7) -> None:
     """The tiled warp of a whole registered raster, read by windows from the file and from the
     image in memory, against one ``cv2.remap`` of the same output with a precomputed map (the
     moving image and the map in memory)."""
