@@ -164,11 +164,12 @@ def _run_inside(lo, hi, ax, cx, ay, cy, x0, mw, mh):  # type: ignore[no-untyped-
 
 
 @njit(cache=True, nogil=True)
-def _tile_maps(ref_tris, maps, closed, x0, y0, mw, mh, map_x, map_y):  # type: ignore[no-untyped-def]
+def _tile_maps(ref_tris, maps, closed, whole, x0, y0, mw, mh, map_x, map_y):  # type: ignore[no-untyped-def]
     """Fill ``map_x`` and ``map_y`` (float32, the tile's shape; ``map_x`` -1 on entry) with each
     owned pixel's position in the moving image relative to the window it needs;
     :data:`_OUTSIDE` in ``map_x`` where the pixel maps outside the moving image. ``ref_tris``
-    are shifted by ``(-x0, -y0)``.
+    are shifted by ``(-x0, -y0)``; ``whole[t]`` says that triangle ``t`` maps wholly inside the
+    moving image.
 
     Returns the window ``(sx0, sy0, sx1, sy1)`` (end exclusive; empty when nothing maps).
     The runs of the fill rule (every pixel to one triangle of the reference triangulation) and
@@ -209,7 +210,10 @@ def _tile_maps(ref_tris, maps, closed, x0, y0, mw, mh, map_x, map_y):  # type: i
                 gy = y + y0
                 cx = maps[t, 0, 1] * gy + maps[t, 0, 2]
                 cy = maps[t, 1, 1] * gy + maps[t, 1, 2]
-                vlo, vhi = _run_inside(lo, hi, ax, cx, ay, cy, x0, mw, mh)
+                if whole[t]:
+                    vlo, vhi = lo, hi
+                else:
+                    vlo, vhi = _run_inside(lo, hi, ax, cx, ay, cy, x0, mw, mh)
                 runs[n, 0], runs[n, 1], runs[n, 2], runs[n, 3] = t, y, lo, hi
                 runs[n, 4], runs[n, 5] = vlo, vhi
                 n += 1
@@ -318,6 +322,13 @@ def warp_tiles(
     mov_tris = np.ascontiguousarray(np.asarray(moving_vertices, np.float64)[tris])
     maps = affine_maps(ref_tris, mov_tris)
     closed = outer_edge_flags(tris)
+    # Triangles mapped wholly inside the moving image need no test per run: a convex
+    # combination of their corners is inside too. The margin covers the pixels the fill rule
+    # gives a triangle from its 1/256-pixel corners, up to 1/256 px outside the exact ones.
+    margin = 0.5
+    whole = ((mov_tris >= margin).all(axis=(1, 2))
+             & (mov_tris[:, :, 0] <= source.width - 1 - margin).all(axis=1)
+             & (mov_tris[:, :, 1] <= source.height - 1 - margin).all(axis=1))
     lo, hi = ref_tris.min(axis=1), ref_tris.max(axis=1)  # (T, 2) bounding boxes
     reads = threading.Lock()
 
@@ -326,8 +337,8 @@ def warp_tiles(
         rows, cols = min(tile, height - y0), min(tile, width - x0)
         near = ((hi[:, 1] >= y0 - 1) & (lo[:, 1] <= y0 + rows)
                 & (hi[:, 0] >= x0 - 1) & (lo[:, 0] <= x0 + cols))
-        return _one_tile(source, ref_tris[near], maps[near], closed[near], x0, y0, rows, cols,
-                         nodata, reads)
+        return _one_tile(source, ref_tris[near], maps[near], closed[near], whole[near], x0, y0,
+                         rows, cols, nodata, reads)
 
     corners = [(x0, y0) for y0 in range(0, height, tile) for x0 in range(0, width, tile)]
     if threads <= 1:
@@ -344,15 +355,15 @@ def warp_tiles(
 
 
 def _one_tile(source: BandSource, ref_tris: np.ndarray, maps: np.ndarray, closed: np.ndarray,
-              x0: int, y0: int, rows: int, cols: int, nodata: float,
+              whole: np.ndarray, x0: int, y0: int, rows: int, cols: int, nodata: float,
               reads: threading.Lock) -> Tile:
     map_x = np.full((rows, cols), -1.0, np.float32)
     map_y = np.zeros((rows, cols), np.float32)
     window = (0, 0, 0, 0)
     if len(ref_tris):
         shifted = np.ascontiguousarray(ref_tris - np.array([x0, y0], np.float64))
-        window = _tile_maps(shifted, maps, closed, x0, y0, source.width, source.height, map_x,
-                            map_y)
+        window = _tile_maps(shifted, maps, closed, whole, x0, y0, source.width, source.height,
+                            map_x, map_y)
     sx0, sy0, sx1, sy1 = window
     if sx1 <= sx0 or sy1 <= sy0:
         out = np.full((rows, cols, source.count), nodata, dtype=source.dtype)
