@@ -182,7 +182,7 @@ def time_warp(reference: Path, moving: Path, points: Path, repeats: int = 7) -> 
     ref, mov = np.asarray(doc["reference"]), np.asarray(doc["moving"])
     tris = Delaunay(ref).simplices
     threads = os.cpu_count() or 1  # as many as OpenCV's remap uses
-    with RasterFile(moving) as source:
+    with RasterFile(moving, threads=threads) as source:
         image, _ = source.read(0, 0, source.width, source.height)
         shape = (source.height, source.width)
         map_x, map_y, _ = piecewise_map(ref, mov, tris, shape)

@@ -152,8 +152,10 @@ def cmd_register(args: argparse.Namespace) -> int:
         options = RegistrationOptions(**options_from_args(args))
         with contextlib.ExitStack() as stack:
             # A large TIFF is read window by window (pwlreg.core.scaled), anything else whole.
-            reference = _closing(stack, open_image(args.reference, field="reference"))
-            moving = _closing(stack, open_image(args.moving, field="moving"))
+            threads = os.cpu_count() or 1
+            reference = _closing(stack, open_image(args.reference, field="reference",
+                                                   threads=threads))
+            moving = _closing(stack, open_image(args.moving, field="moving", threads=threads))
             points = None
             if args.points:
                 data = GCPS_KEYWORD if _own_gcps(args.points) else Path(args.points).read_bytes()
@@ -162,7 +164,7 @@ def cmd_register(args: argparse.Namespace) -> int:
                               progress=progress)
         pictures = (None if hasattr(i, "close") else i for i in (reference, moving))
         write_outputs(result, args.out, sources=Sources(
-            *pictures, Path(args.reference), Path(args.moving), threads=os.cpu_count() or 1))
+            *pictures, Path(args.reference), Path(args.moving), threads=threads))
     except UnreliableResultError as exc:
         raise CommandError(str(exc), UNRELIABLE_EXIT) from None
     except InputError as exc:

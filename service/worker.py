@@ -396,7 +396,8 @@ def _read_images(context: WorkerContext, job_id: str, files: contextlib.ExitStac
         if not path.exists() and legacy.exists():
             return np.load(legacy, allow_pickle=False)
         return open_image(path, max_pixels=settings.max_pixels,
-                          max_raster_pixels=settings.max_raster_pixels, field=name)
+                          max_raster_pixels=settings.max_raster_pixels, field=name,
+                          threads=settings.worker_threads)
 
     if settings.worker_threads < 2:
         images = [read(name) for name in IMAGES]

@@ -199,12 +199,16 @@ class RasterFile:
         A TIFF already checked by :func:`probe_tiff`.
     field : str
         Name used in error messages.
+    threads : int
+        Threads GDAL may use to decode the blocks of one read.
     """
 
-    def __init__(self, path: str | os.PathLike, field: str = "image") -> None:
+    def __init__(self, path: str | os.PathLike, field: str = "image", *, threads: int = 1
+                 ) -> None:
         self.path, self.field = Path(path), field
         self._stack = contextlib.ExitStack()
-        self._stack.enter_context(rasterio.Env(GDAL_CACHEMAX=CACHE_BYTES))
+        self._stack.enter_context(rasterio.Env(GDAL_CACHEMAX=CACHE_BYTES,
+                                               GDAL_NUM_THREADS=str(max(1, threads))))
         self._ds = self._stack.enter_context(open_tiff(self.path, field))
         self._layout = _Layout.of(self._ds)
         self.height, self.width = self._ds.height, self._ds.width
@@ -437,7 +441,7 @@ def moving_source(result: RegistrationResult, sources: Sources
         with open_tiff(path, "moving") as ds:
             palette = ds.count == 1 and ds.colorinterp[0] == ColorInterp.palette
         if not palette:
-            return RasterFile(path, "moving")
+            return RasterFile(path, "moving", threads=sources.threads)
     from pwlreg.core.io import read_image
 
     return contextlib.nullcontext(ArrayBands(read_image(path, field="moving")))
@@ -467,7 +471,7 @@ def read_by_windows(path: str | os.PathLike, level_pixels: int = LEVEL_PIXELS) -
 
 def open_image(path: str | os.PathLike, *, max_pixels: int | None = None,
                max_raster_pixels: int | None = None, level_pixels: int = LEVEL_PIXELS,
-               field: str = "image") -> np.ndarray | RasterFile:
+               field: str = "image", threads: int = 1) -> np.ndarray | RasterFile:
     """An image file, decoded, or, for a TIFF of more than ``level_pixels`` pixels, opened
     for reading window by window (:class:`RasterFile`; close it after use).
 
@@ -483,6 +487,8 @@ def open_image(path: str | os.PathLike, *, max_pixels: int | None = None,
         TIFFs up to this size are decoded whole.
     field : str
         Name used in error messages.
+    threads : int
+        Threads GDAL may use to decode a :class:`RasterFile`'s blocks.
 
     Raises
     ------
@@ -493,5 +499,5 @@ def open_image(path: str | os.PathLike, *, max_pixels: int | None = None,
 
     if read_by_windows(path, level_pixels):
         probe_image(path, max_raster_pixels, field)
-        return RasterFile(path, field)
+        return RasterFile(path, field, threads=threads)
     return read_image(path, max_pixels, field)
