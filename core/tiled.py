@@ -33,7 +33,7 @@ LEVEL_PIXELS = 1 << 24
 """Largest image registered at full resolution (16.8 MP: about 250 MB of work memory); larger
 ones are registered on a reduced level (:mod:`pwlreg.core.scaled`) and their files, when TIFFs,
 read window by window."""
-TILE = 1024
+TILE = 512
 """Side of the output tiles, in pixels (a multiple of registered.tif's 512-pixel blocks)."""
 _REMAP_DTYPES = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
 """Sample types OpenCV's remap takes as they are (32-bit integers go through float64)."""
@@ -358,7 +358,8 @@ def _one_tile(source: BandSource, ref_tris: np.ndarray, maps: np.ndarray, closed
               whole: np.ndarray, x0: int, y0: int, rows: int, cols: int, nodata: float,
               reads: threading.Lock) -> Tile:
     map_x = np.full((rows, cols), -1.0, np.float32)
-    map_y = np.zeros((rows, cols), np.float32)
+    # Where map_x < 0, map_y is never read: x alone puts the pixel outside any window.
+    map_y = np.empty((rows, cols), np.float32)
     window = (0, 0, 0, 0)
     if len(ref_tris):
         shifted = np.ascontiguousarray(ref_tris - np.array([x0, y0], np.float64))

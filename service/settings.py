@@ -75,7 +75,7 @@ class Settings(BaseSettings):
         le=2**30,
         description="Largest accepted TIFF (GeoTIFF) over 16.8 MP, in pixels: such rasters are "
         "read window by window and registered on a reduced level, in a memory that does not "
-        "grow with them (about 0.5-1 GB), so this limit bounds a job's time, not its memory. "
+        "grow with them (under 1 GB), so this limit bounds a job's time, not its memory. "
         "Their upload must also fit max_upload_bytes.",
     )
     job_time_limit: float = Field(

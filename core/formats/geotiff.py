@@ -371,7 +371,7 @@ def write_registered(result: RegistrationResult, sources: Sources, path: Path) -
     pixel are nodata: the moving file's nodata value, else NaN for float samples, else 0.
     Resampling is :func:`pwlreg.core.tiled.warp_tiles` (bilinear, the pixels of registered.png)
     from the full-resolution moving image (:func:`moving_source`: a large TIFF is read window
-    by window), one 1024-pixel tile at a time, each written and compressed once: the work
+    by window), one 512-pixel tile at a time, each written and compressed once: the work
     memory is a few tiles whatever the size. Files whose longer side exceeds 1024 pixels get
     overviews (averages, factors 2, 4, ...) down to that size.
     """
