@@ -21,7 +21,7 @@ from pwlreg.core.optimizers import OPTIMIZERS
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import guided_pairs
+from pwlreg.core.refine import epipolar_pairs, guided_pairs
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -35,6 +35,9 @@ Progress = Callable[[str, float], None]
 #: first mesh's corrections made measurable (on Middlebury with ``extent=frame`` it lowered the
 #: mean endpoint error a further 1-4 %).
 INSERTION_ROUNDS = 2
+#: Fewest new pairs the insertion may add, however few were matched (a wide baseline leaves a
+#: few dozen pairs, and then the largest triangles).
+MIN_INSERTED = 100
 STAGES = ("matching", "triangulating", "optimizing", "rendering")
 
 
@@ -107,6 +110,20 @@ class RegistrationResult:
             f"NMI {s.initial_nmi:.4f} -> {s.final_nmi:.4f}, "
             f"{self.timings['total_s']:.2f} s, quality {self.quality.verdict}"
         )
+
+
+def insertion_budget(matched: int) -> int:
+    """Most measured vertices after the insertion: twice the matched pairs, at least
+    :data:`MIN_INSERTED` more."""
+    return max(2 * matched, matched + MIN_INSERTED)
+
+
+def _add_counts(total: dict[str, int], source: str, counts: dict[str, int]) -> None:
+    """Add an insertion source's ``counts`` to ``total`` under ``"<source> <key>"``; its
+    ``inserted`` also to the total ``inserted``."""
+    for key, n in counts.items():
+        total[f"{source} {key}"] = total.get(f"{source} {key}", 0) + n
+    total["inserted"] += counts["inserted"]
 
 
 def in_hull(points: np.ndarray, query: np.ndarray) -> np.ndarray:
@@ -220,27 +237,39 @@ def register(
 
     mesh, tri_report = build(conjugate.reference, conjugate.moving)
     insertion = None
+    ref_meas, mov_meas = conjugate.reference, conjugate.moving
     if opts.insert_vertices == "always" or (
         opts.insert_vertices == "automatic" and conjugate.source != "client"
     ):
         grey = to_gray8(reference), to_gray8(moving)
-        ref_meas, mov_meas = conjugate.reference, conjugate.moving
-        insertion = {}
+        insertion = {"inserted": 0}
         for _ in range(INSERTION_ROUNDS):
+            budget = insertion_budget(len(conjugate.reference)) - len(ref_meas)
             found = guided_pairs(
                 *grey, mesh.reference, mesh.moving, mesh.triangles, images,
                 measured=len(ref_meas), epsilon=opts.epsilon, epsilon_pixels=opts.epsilon_pixels,
-                budget=2 * len(conjugate.reference) - len(ref_meas),
+                budget=budget,
             )
-            for key, n in found.counts.items():
-                insertion[key] = insertion.get(key, 0) + n
-            if not len(found.reference):
+            new_ref, new_mov = found.reference, found.moving
+            _add_counts(insertion, "flow", found.counts)
+            if conjugate.epipolar is not None:
+                along = epipolar_pairs(
+                    *grey, np.concatenate([mesh.reference, new_ref]),
+                    np.concatenate([mesh.moving, new_mov]), mesh.triangles,
+                    conjugate.epipolar.matrix, images, measured=len(ref_meas),
+                    budget=budget - len(new_ref), epsilon=opts.epsilon,
+                    epsilon_pixels=opts.epsilon_pixels, threshold=conjugate.epipolar.threshold,
+                )
+                _add_counts(insertion, "epipolar", along.counts)
+                new_ref = np.concatenate([new_ref, along.reference])
+                new_mov = np.concatenate([new_mov, along.moving])
+            if not len(new_ref):
                 break
-            ref_meas = np.concatenate([ref_meas, found.reference])
-            mov_meas = np.concatenate([mov_meas, found.moving])
+            ref_meas = np.concatenate([ref_meas, new_ref])
+            mov_meas = np.concatenate([mov_meas, new_mov])
             mesh, tri_report = build(ref_meas, mov_meas)
     inserted = np.zeros(len(mesh.reference), bool)
-    if insertion and insertion["inserted"]:
+    if len(ref_meas) > len(conjugate.reference):
         added = ref_meas[len(conjugate.reference):]
         distance, _ = cKDTree(quantize(added)).query(mesh.reference)
         inserted = distance < 1e-9

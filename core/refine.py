@@ -20,7 +20,9 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pwlreg.core.epipolar import sampson_distance
 from pwlreg.core.optimize import gain_thresholds
+from pwlreg.core.raster import affine_maps
 from pwlreg.core.reliability import uniqueness
 from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
 from pwlreg.core.warp import piecewise_map
@@ -247,3 +249,245 @@ def _containing(vertices: np.ndarray, tris: np.ndarray, points: np.ndarray) -> n
         if len(hit):
             out[n] = hit[0]
     return out
+
+
+#: Half side (pixels of the level) of the patches compared along the epipolar line.
+EPI_HALF = 6
+
+#: Smallest zero-mean normalized correlation of an epipolar match.
+EPI_NCC = 0.8
+
+#: A second correlation peak along the line this close to the best (ratio) makes a match
+#: ambiguous (repeated texture).
+EPI_AMBIGUITY = 0.9
+
+#: Distance to the line (pixels of the level) searched on each side: the epipolar geometry of
+#: a few hundred pairs is off by about a pixel away from them.
+EPI_BAND = 2
+
+#: Search margin (pixels of the level) beyond the neighbours' displacements, and the longest
+#: segment searched.
+EPI_MARGIN, EPI_LONGEST = 8, 192
+
+#: Largest distance (pixels of the level) between a point and where its match's reverse
+#: search along the reference's epipolar line lands.
+LR_PX = 1.0
+
+
+def epipolar_pairs(
+    reference_gray: np.ndarray,
+    moving_gray: np.ndarray,
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    fundamental: np.ndarray,
+    images: ScoringImages,
+    *,
+    measured: int,
+    budget: int,
+    epsilon: float,
+    epsilon_pixels: float,
+    threshold: float,
+) -> Insertion:
+    """New conjugate pairs matched along the epipolar lines, guided by the current mesh.
+
+    Where the mesh is far off (a triangle spans a depth step, or a wide baseline left few
+    pairs), the residual flow of :func:`guided_pairs` fails its forward-backward test. The
+    epipolar geometry still holds there: each reference corner away from the vertices is
+    searched for along its epipolar line, over the segment the displacements of its
+    neighbouring vertices span (a point of a piecewise-planar scene moves like one of the
+    surfaces around it), with a patch shaped by the local affine map of the mesh. A match must
+    correlate well, have no rival peak along the line (repeated texture), lie within
+    ``threshold`` of the line, and -- when it corrects the mesh by more than :data:`SMALL_PX`
+    -- raise the mutual information of the triangle it splits.
+
+    Parameters
+    ----------
+    fundamental : ndarray, shape (3, 3)
+        ``x_mov^T F x_ref = 0`` in pixels of the full images.
+    threshold : float
+        Largest Sampson distance (pixels) of a match to the epipolar geometry.
+
+    The other parameters are those of :func:`guided_pairs`.
+
+    Returns
+    -------
+    Insertion
+    """
+    counts = {"candidates": 0, "correlated": 0, "unique": 0, "epipolar": 0,
+              "rejected by mi": 0, "inserted": 0}
+    empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
+    if budget <= 0:
+        return empty
+    h, w = reference_gray.shape
+    halvings = 0
+    while max(h, w) / 2**halvings > REFINE_SIDE:
+        halvings += 1
+    scale = 0.5**halvings
+    ref_l = _level(reference_gray, halvings).astype(np.float32)
+    mov_l = _level(moving_gray, halvings).astype(np.float32)
+    ref_v = np.asarray(reference_vertices, dtype=np.float64)
+    mov_v = np.asarray(moving_vertices, dtype=np.float64)
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    ref_lv, mov_lv = _to_level(ref_v, scale), _to_level(mov_v, scale)
+    map_x, map_y, label = piecewise_map(ref_lv, mov_lv, tris, ref_l.shape)
+    # Pixels of the level -> of the image: x = (x_l + 0.5) / scale - 0.5.
+    to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
+                        [0, 0, 1]])
+    F = to_full.T @ np.asarray(fundamental, dtype=np.float64) @ to_full
+
+    # The spacing of the mesh the budget allows: a sparse mesh (a wide baseline) gets
+    # candidates at the density it may reach, not at its own.
+    spacing = np.sqrt(h * w / (measured + budget)) * scale
+    corners = cv2.goodFeaturesToTrack(ref_l, int(4 * (measured + budget)), 0.01,
+                                      max(spacing * MIN_SPACING, 2.0))
+    if corners is None:
+        return empty
+    points = corners.reshape(-1, 2).astype(np.float64)
+    far, _ = cKDTree(ref_lv).query(points)
+    lh, lw = ref_l.shape
+    edge = EPI_HALF + 2
+    inner = ((points[:, 0] >= edge) & (points[:, 0] < lw - edge) & (points[:, 1] >= edge)
+             & (points[:, 1] < lh - edge))
+    cells = np.clip(np.rint(points).astype(np.int64), 0, [lw - 1, lh - 1])
+    owner = label[cells[:, 1], cells[:, 0]]
+    keep = (far > spacing * MIN_SPACING) & inner & (owner >= 0)
+    points, owner = points[keep], owner[keep]
+    counts["candidates"] = len(points)
+    if not len(points):
+        return empty
+
+    affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
+    linear = affine[:, :, :2]
+    predicted = np.column_stack([_sample(map_x.astype(np.float32), points),
+                                 _sample(map_y.astype(np.float32), points)])
+    line = _lines(F, points)
+    foot = _foot(line, predicted)
+    # The segment: the displacements of the nearest vertices applied at the point.
+    _, near = cKDTree(ref_lv).query(points, k=min(8, len(ref_lv)))
+    near = near.reshape(len(points), -1)
+    shifted = points[:, None, :] + (mov_lv - ref_lv)[near]
+    along = np.einsum("ikj,ij->ik", shifted - foot[:, None, :], _direction(line))
+    low = np.minimum(along.min(axis=1), 0.0) - EPI_MARGIN
+    high = np.maximum(along.max(axis=1), 0.0) + EPI_MARGIN
+    centre = 0.5 * (low + high)
+    half_len = np.minimum(0.5 * (high - low), EPI_LONGEST / 2)
+    best_xy, best_score, rival = _search_lines(
+        ref_l, mov_l, points, line, foot, centre - half_len, centre + half_len, linear)
+    correlated = best_score >= EPI_NCC
+    counts["correlated"] = int(correlated.sum())
+    unique = correlated & (rival < EPI_AMBIGUITY)
+    # Left-right check: the match, searched for along its own epipolar line in the reference
+    # near the point, must come back to it.
+    idx = np.flatnonzero(unique)
+    back_line = _lines(F.T, best_xy[idx])
+    inverse = np.linalg.inv(linear[idx] + 1e-12 * np.eye(2))
+    half = np.full(len(idx), EPI_MARGIN / 2)
+    back_xy, _, _ = _search_lines(mov_l, ref_l, best_xy[idx], back_line,
+                                  _foot(back_line, points[idx]), -half, half, inverse)
+    unique[idx] = np.hypot(*(back_xy - points[idx]).T) <= LR_PX
+    counts["unique"] = int(unique.sum())
+    reference = _from_level(points, scale)
+    moving = _from_level(best_xy, scale)
+    ok = unique.copy()
+    ok[unique] = sampson_distance(fundamental, reference[unique], moving[unique]) <= threshold
+    counts["epipolar"] = int(ok.sum())
+    size = np.hypot(*(best_xy - predicted).T) / scale
+    large = ok & (size > SMALL_PX)
+    if large.any():
+        confirmed = _raises_mi(images, ref_v, mov_v, tris, reference[large], moving[large],
+                               epsilon=epsilon, epsilon_pixels=epsilon_pixels)
+        counts["rejected by mi"] = int((~confirmed).sum())
+        ok[np.flatnonzero(large)[~confirmed]] = False
+    chosen = np.flatnonzero(ok)[np.argsort(size[ok])[::-1]][:budget]
+    counts["inserted"] = len(chosen)
+    return Insertion(reference[chosen], moving[chosen], counts)
+
+
+def _lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Epipolar lines ``F x`` of ``points``, scaled so that ``(a, b)`` is a unit normal (NaN
+    for a degenerate line)."""
+    line = np.column_stack([points, np.ones(len(points))]) @ F.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return line / np.hypot(line[:, 0], line[:, 1])[:, None]
+
+
+def _direction(line: np.ndarray) -> np.ndarray:
+    return np.column_stack([-line[:, 1], line[:, 0]])
+
+
+def _foot(line: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Orthogonal projection of each point on its line."""
+    distance = np.einsum("ij,ij->i", line[:, :2], points) + line[:, 2]
+    return points - distance[:, None] * line[:, :2]
+
+
+def _search_lines(
+    source: np.ndarray,
+    target: np.ndarray,
+    points: np.ndarray,
+    line: np.ndarray,
+    foot: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    linear: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best match of each source point's patch along its line in ``target``.
+
+    The patch (side ``2 EPI_HALF + 1``) is compared, by zero-mean normalized correlation, with
+    the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps from
+    ``foot + low * direction`` to ``foot + high * direction``, and up to :data:`EPI_BAND`
+    pixels off the line. Returns the sub-pixel best positions (NaN when not searched), their
+    correlation (-1) and the ratio of the best rival peak along the line (more than 3 px away)
+    to the best.
+    """
+    n = len(points)
+    best_xy = np.full((n, 2), np.nan)
+    best_score = np.full(n, -1.0)
+    rival = np.full(n, 1.0)
+    if n == 0:
+        return best_xy, best_score, rival
+    grid = np.arange(-EPI_HALF, EPI_HALF + 1, dtype=np.float64)
+    gu, gv = np.meshgrid(grid, grid)
+    offsets = np.column_stack([gu.ravel(), gv.ravel()])  # (P, 2)
+    patch = cv2.remap(
+        source, (points[:, 0:1] + offsets[None, :, 0]).astype(np.float32),
+        (points[:, 1:2] + offsets[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
+    patch = patch - patch.mean(axis=1, keepdims=True)
+    patch_norm = np.sqrt((patch**2).sum(axis=1))
+    bands = np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
+    normal, direction = line[:, :2], _direction(line)
+    ok = (np.isfinite(low) & np.isfinite(high) & np.isfinite(foot).all(axis=1)
+          & np.isfinite(linear).all(axis=(1, 2)) & (patch_norm > 1e-3 * len(offsets)))
+    for i in np.flatnonzero(ok):
+        steps = np.arange(np.floor(low[i]), np.ceil(high[i]) + 1)
+        centres = (foot[i] + steps[:, None, None] * direction[i]
+                   + bands[None, :, None] * normal[i])  # (S, B, 2)
+        xy = centres[:, :, None, :] + (linear[i] @ offsets.T).T[None, None]  # (S, B, P, 2)
+        flat = xy.reshape(-1, len(offsets), 2).astype(np.float32)
+        samples = cv2.remap(target, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        samples = samples - samples.mean(axis=1, keepdims=True)
+        score = (samples @ patch[i]) / (np.sqrt((samples**2).sum(axis=1)) * patch_norm[i]
+                                        + 1e-9)
+        score = np.nan_to_num(score, nan=-1.0).reshape(len(steps), len(bands))
+        profile = score.max(axis=1)
+        s = int(np.argmax(profile))
+        b = int(np.argmax(score[s]))
+        best_score[i] = profile[s]
+        away = np.abs(np.arange(len(steps)) - s) > 3
+        peaks = np.r_[False, (profile[1:-1] >= profile[:-2]) & (profile[1:-1] >= profile[2:]),
+                      False]
+        rival[i] = profile[away & peaks].max(initial=-1.0) / max(profile[s], 1e-9)
+        best_xy[i] = (foot[i] + (steps[s] + _vertex(profile, s)) * direction[i]
+                      + (bands[b] + _vertex(score[s], b)) * normal[i])
+    return best_xy, best_score, rival
+
+
+def _vertex(values: np.ndarray, k: int) -> float:
+    """Offset of the vertex of the parabola through ``values[k-1:k+2]`` (0 at an end)."""
+    if k == 0 or k == len(values) - 1:
+        return 0.0
+    a, b, c = values[k - 1], values[k], values[k + 1]
+    den = a - 2 * b + c
+    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
