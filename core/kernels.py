@@ -380,3 +380,53 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
                             out[y, x, colour] = min(val, full)
                     if nb != 4:
                         out[y, x, colour] = full
+
+
+@njit(cache=True)
+def line_correlation(target, patch, offsets, start, step, normal, linear, lengths, bands,
+                     out):  # type: ignore[no-untyped-def]
+    """Zero-mean normalized correlation of patches along lines (:func:`core.refine`).
+
+    For candidate ``i``, position ``s < lengths[i]`` and band ``b``, the target is sampled
+    (bilinear) at ``start[i] + s * step[i] + bands[b] * normal[i] + linear[i] @ offsets[p]``
+    and correlated with ``patch[i]`` (zero-mean); ``out[i, s, b]`` gets the correlation, -1
+    where a sample falls outside the target or either side is flat.
+    """
+    h, w = target.shape
+    n_off = offsets.shape[0]
+    for i in range(start.shape[0]):
+        pm = 0.0
+        for p in range(n_off):
+            pm += patch[i, p]
+        pm /= n_off
+        pv = 0.0
+        for p in range(n_off):
+            pv += (patch[i, p] - pm) ** 2
+        for s in range(lengths[i]):
+            for b in range(bands.shape[0]):
+                cx = start[i, 0] + s * step[i, 0] + bands[b] * normal[i, 0]
+                cy = start[i, 1] + s * step[i, 1] + bands[b] * normal[i, 1]
+                sx = 0.0
+                sxx = 0.0
+                sxp = 0.0
+                inside = True
+                for p in range(n_off):
+                    x = cx + linear[i, 0, 0] * offsets[p, 0] + linear[i, 0, 1] * offsets[p, 1]
+                    y = cy + linear[i, 1, 0] * offsets[p, 0] + linear[i, 1, 1] * offsets[p, 1]
+                    if not (x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0):
+                        inside = False
+                        break
+                    x0 = min(int(x), w - 2)
+                    y0 = min(int(y), h - 2)
+                    fx = x - x0
+                    fy = y - y0
+                    v = ((target[y0, x0] * (1.0 - fx) + target[y0, x0 + 1] * fx) * (1.0 - fy)
+                         + (target[y0 + 1, x0] * (1.0 - fx) + target[y0 + 1, x0 + 1] * fx) * fy)
+                    sx += v
+                    sxx += v * v
+                    sxp += v * (patch[i, p] - pm)
+                var = sxx - sx * sx / n_off
+                if not inside or var <= 1e-9 or pv <= 1e-9:
+                    out[i, s, b] = -1.0
+                else:
+                    out[i, s, b] = sxp / np.sqrt(var * pv)

@@ -21,9 +21,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import sampson_distance
+from pwlreg.core.kernels import line_correlation
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
-from pwlreg.core.reliability import uniqueness
+from pwlreg.core.reliability import neighbour_outliers, uniqueness
 from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
 from pwlreg.core.warp import piecewise_map
 
@@ -314,7 +315,7 @@ def epipolar_pairs(
     -------
     Insertion
     """
-    counts = {"candidates": 0, "correlated": 0, "unique": 0, "epipolar": 0,
+    counts = {"candidates": 0, "correlated": 0, "unique": 0, "epipolar": 0, "neighbours": 0,
               "rejected by mi": 0, "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
@@ -392,6 +393,14 @@ def epipolar_pairs(
     ok = unique.copy()
     ok[unique] = sampson_distance(fundamental, reference[unique], moving[unique]) <= threshold
     counts["epipolar"] = int(ok.sum())
+    # The matcher's own last check: a new pair that the local map of its neighbours (the
+    # vertices and the other new pairs) contradicts, with fewer than two of them moving like
+    # it, is dropped (an occluded point matched to a lookalike on the line).
+    idx = np.flatnonzero(ok)
+    contradicted = neighbour_outliers(np.concatenate([ref_v, reference[idx]]),
+                                      np.concatenate([mov_v, moving[idx]]))[len(ref_v):]
+    ok[idx[contradicted]] = False
+    counts["neighbours"] = int(ok.sum())
     size = np.hypot(*(best_xy - predicted).T) / scale
     large = ok & (size > SMALL_PX)
     if large.any():
@@ -437,57 +446,91 @@ def _search_lines(
     The patch (side ``2 EPI_HALF + 1``) is compared, by zero-mean normalized correlation, with
     the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps from
     ``foot + low * direction`` to ``foot + high * direction``, and up to :data:`EPI_BAND`
-    pixels off the line. Returns the sub-pixel best positions (NaN when not searched), their
-    correlation (-1) and the ratio of the best rival peak along the line (more than 3 px away)
-    to the best.
+    pixels off the line (:func:`core.kernels.line_correlation`). Returns the sub-pixel best
+    positions (NaN when not searched), their correlation (-1) and the ratio of the best rival
+    peak along the line (more than 3 px away) to the best.
     """
     n = len(points)
     best_xy = np.full((n, 2), np.nan)
     best_score = np.full(n, -1.0)
     rival = np.full(n, 1.0)
-    if n == 0:
-        return best_xy, best_score, rival
-    grid = np.arange(-EPI_HALF, EPI_HALF + 1, dtype=np.float64)
-    gu, gv = np.meshgrid(grid, grid)
-    offsets = np.column_stack([gu.ravel(), gv.ravel()])  # (P, 2)
-    patch = cv2.remap(
-        source, (points[:, 0:1] + offsets[None, :, 0]).astype(np.float32),
-        (points[:, 1:2] + offsets[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
-    patch = patch - patch.mean(axis=1, keepdims=True)
-    patch_norm = np.sqrt((patch**2).sum(axis=1))
-    bands = np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
-    normal, direction = line[:, :2], _direction(line)
     ok = (np.isfinite(low) & np.isfinite(high) & np.isfinite(foot).all(axis=1)
-          & np.isfinite(linear).all(axis=(1, 2)) & (patch_norm > 1e-3 * len(offsets)))
-    for i in np.flatnonzero(ok):
-        steps = np.arange(np.floor(low[i]), np.ceil(high[i]) + 1)
-        centres = (foot[i] + steps[:, None, None] * direction[i]
-                   + bands[None, :, None] * normal[i])  # (S, B, 2)
-        xy = centres[:, :, None, :] + (linear[i] @ offsets.T).T[None, None]  # (S, B, P, 2)
-        flat = xy.reshape(-1, len(offsets), 2).astype(np.float32)
-        samples = cv2.remap(target, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        samples = samples - samples.mean(axis=1, keepdims=True)
-        score = (samples @ patch[i]) / (np.sqrt((samples**2).sum(axis=1)) * patch_norm[i]
-                                        + 1e-9)
-        score = np.nan_to_num(score, nan=-1.0).reshape(len(steps), len(bands))
-        profile = score.max(axis=1)
-        s = int(np.argmax(profile))
-        b = int(np.argmax(score[s]))
-        best_score[i] = profile[s]
-        away = np.abs(np.arange(len(steps)) - s) > 3
-        peaks = np.r_[False, (profile[1:-1] >= profile[:-2]) & (profile[1:-1] >= profile[2:]),
-                      False]
-        rival[i] = profile[away & peaks].max(initial=-1.0) / max(profile[s], 1e-9)
-        best_xy[i] = (foot[i] + (steps[s] + _vertex(profile, s)) * direction[i]
-                      + (bands[b] + _vertex(score[s], b)) * normal[i])
+          & np.isfinite(linear).all(axis=(1, 2)))
+    idx = np.flatnonzero(ok)
+    if not len(idx):
+        return best_xy, best_score, rival
+    pts = points[idx]
+    normal, direction = line[idx, :2], _direction(line[idx])
+    first = np.floor(low[idx])
+    lengths = (np.ceil(high[idx]) - first + 1).astype(np.int64)
+    # Along the whole segment with every other pixel of the patch and three bands; then the
+    # full patch and every band over the five steps around the best.
+    score, _ = _correlate(source, target, pts, linear[idx], foot[idx] + first[:, None] * direction,
+                          direction, normal, lengths, coarse=True)
+    profile = score.max(axis=2)  # (K, S)
+    s = np.argmax(profile, axis=1)
+    best = profile[np.arange(len(idx)), s]
+    steps = np.arange(profile.shape[1])
+    padded = np.pad(profile, ((0, 0), (1, 1)), constant_values=-np.inf)
+    peaks = (profile >= padded[:, :-2]) & (profile >= padded[:, 2:])
+    away = np.abs(steps[None, :] - s[:, None]) > 3
+    rival[idx] = np.where(away & peaks, profile, -1.0).max(axis=1) / np.maximum(best, 1e-9)
+
+    around = first + s - 2
+    score, bands = _correlate(source, target, pts, linear[idx],
+                              foot[idx] + around[:, None] * direction, direction, normal,
+                              np.full(len(idx), 5), coarse=False)
+    rows = np.arange(len(idx))
+    flat = score.reshape(len(idx), -1).argmax(axis=1)
+    s, b = np.unravel_index(flat, score.shape[1:])
+    best_score[idx] = score[rows, s, b]
+    along = around + s + _vertex(score[rows, :, b], s)
+    across = bands[b] + _vertex(score[rows, s], b)
+    best_xy[idx] = foot[idx] + along[:, None] * direction + across[:, None] * normal
     return best_xy, best_score, rival
 
 
-def _vertex(values: np.ndarray, k: int) -> float:
-    """Offset of the vertex of the parabola through ``values[k-1:k+2]`` (0 at an end)."""
-    if k == 0 or k == len(values) - 1:
-        return 0.0
-    a, b, c = values[k - 1], values[k], values[k + 1]
+def _correlate(
+    source: np.ndarray,
+    target: np.ndarray,
+    points: np.ndarray,
+    linear: np.ndarray,
+    start: np.ndarray,
+    direction: np.ndarray,
+    normal: np.ndarray,
+    lengths: np.ndarray,
+    *,
+    coarse: bool,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Correlations ``(K, max(lengths), B)`` of the points' patches at ``start + s * direction
+    + band * normal`` (-1 beyond a point's length), and the bands."""
+    spacing = 2 if coarse else 1
+    grid = np.arange(-EPI_HALF, EPI_HALF + 1, spacing, dtype=np.float64)
+    gu, gv = np.meshgrid(grid, grid)
+    offsets = np.column_stack([gu.ravel(), gv.ravel()])  # (P, 2)
+    bands = np.arange(-EPI_BAND, EPI_BAND + 1, spacing, dtype=np.float64)
+    patch = cv2.remap(
+        source, (points[:, 0:1] + offsets[None, :, 0]).astype(np.float32),
+        (points[:, 1:2] + offsets[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
+    score = np.empty((len(points), int(lengths.max()), len(bands)))
+    line_correlation(np.ascontiguousarray(target, dtype=np.float32),
+                     np.ascontiguousarray(patch, dtype=np.float64), offsets,
+                     np.ascontiguousarray(start), np.ascontiguousarray(direction),
+                     np.ascontiguousarray(normal), np.ascontiguousarray(linear), lengths,
+                     bands, score)
+    score[np.arange(score.shape[1])[None, :] >= lengths[:, None]] = -1.0
+    return score, bands
+
+
+def _vertex(values: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """Offset of the vertex of the parabola through ``values[r, k-1:k+2]`` of each row ``r``
+    (0 at an end or where the three do not bend down)."""
+    rows = np.arange(len(k))
+    inner = (k > 0) & (k < values.shape[1] - 1)
+    a = values[rows, np.maximum(k - 1, 0)]
+    b = values[rows, k]
+    c = values[rows, np.minimum(k + 1, values.shape[1] - 1)]
     den = a - 2 * b + c
-    return float(np.clip(0.5 * (a - c) / den, -0.5, 0.5)) if den < 0 else 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.clip(0.5 * (a - c) / den, -0.5, 0.5)
+    return np.where(inner & (den < 0) & np.isfinite(out), out, 0.0)

@@ -1,9 +1,10 @@
 """Tests of core.refine: vertex insertion guided by the current piecewise map."""
 
+import cv2
 import numpy as np
 
 from pwlreg.core.pipeline import register
-from pwlreg.core.refine import guided_pairs
+from pwlreg.core.refine import epipolar_pairs, guided_pairs
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
@@ -48,6 +49,50 @@ def test_guided_pairs_lie_on_the_true_map() -> None:
     old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
                         my[cells[:, 1], cells[:, 0]] - truth[:, 1])
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
+
+
+#: The open book's epipolar geometry: every displacement is parallel to (-1, 1), so
+#: ``x' + y' - x - y = 0`` (an affine fundamental matrix, ``x_mov^T F x_ref = 0``).
+BOOK_F = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [-0.5, -0.5, 0.0]])
+
+
+def _epipolar_pairs(ref_img: np.ndarray, mov_img: np.ndarray):  # type: ignore[no-untyped-def]
+    ref, mov = _far_points()
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    found = epipolar_pairs(ref_img, mov_img, mesh.reference, mesh.moving, mesh.triangles, BOOK_F,
+                           prepare_images(ref_img, mov_img, 16), measured=len(ref),
+                           budget=len(ref), epsilon=0.01, epsilon_pixels=250.0, threshold=1.5)
+    return mesh, found
+
+
+def test_epipolar_pairs_lie_on_the_true_map() -> None:
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    mesh, found = _epipolar_pairs(ref_img, mov_img)
+    assert 10 <= found.counts["inserted"] == len(found.reference) <= len(mesh.reference)
+    truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1], CREASE))
+    miss = np.hypot(*(found.moving - truth).T)
+    assert np.median(miss) < 0.5 and miss.max() < 1.5, np.sort(miss)[-5:]
+    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, SIZE[::-1])
+    cells = np.rint(found.reference).astype(int)
+    old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
+                        my[cells[:, 1], cells[:, 0]] - truth[:, 1])
+    assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
+
+
+def test_epipolar_pairs_refuse_repeated_texture() -> None:
+    # A 4 px motif repeated over the image: along any epipolar line the patch comes back
+    # every 5.7 px, so no match is unambiguous (a wrong one is as likely as the right one).
+    rng = np.random.default_rng(5)
+    motif = rng.integers(0, 256, (4, 4)).astype(np.uint8)
+    moving = np.tile(motif, (SIZE[1] // 4 + 8, SIZE[0] // 4 + 4))[:SIZE[1], :SIZE[0]].copy()
+    moving = cv2.GaussianBlur(moving, (0, 0), 1.0)
+    ys, xs = np.mgrid[0:SIZE[1], 0:SIZE[0]].astype(np.float32)
+    mx, my = book_map(xs, ys, CREASE)
+    reference = cv2.remap(moving, mx.astype(np.float32), my.astype(np.float32),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    _, found = _epipolar_pairs(reference, moving)
+    assert found.counts["candidates"] > 20 and found.counts["correlated"] > 10, found.counts
+    assert found.counts["inserted"] == 0, found.counts
 
 
 def test_insertion_lowers_the_error_and_is_recorded() -> None:
