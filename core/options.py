@@ -56,9 +56,12 @@ class RegistrationOptions(BaseModel):
         description="Vertex insertion guided by the mesh: the moving image resampled by a first "
         "mesh differs from the reference only by the mesh's residual error, which a dense "
         "optical flow measures well; reference corners away from the vertices where that flow "
-        "is consistent and the correlation check confirms it become new pairs (large "
-        "corrections must also raise the mutual information of the triangle they split), at "
-        "most as many as the matched pairs, and the mesh is built again over all of them. "
+        "is consistent and the correlation check confirms it become new pairs; where the "
+        "mesh is too far off for the flow, corners are searched for along their epipolar "
+        "line (unambiguous peak, left-right check, not contradicted by their neighbours). "
+        "Large corrections must also raise the mutual information of the triangle they "
+        "split; at most as many new pairs as matched ones (at least 100), and the mesh is "
+        "built again over all of them. "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept); 'never': the paper's mesh over the points alone.",
     )

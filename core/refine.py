@@ -8,8 +8,12 @@ measures well even on wide-baseline pairs where it fails on the raw images. Corn
 reference away from the vertices, where that residual flow is consistent forward and backward
 and the correlation check of :func:`core.reliability.uniqueness` confirms it, become new
 conjugate pairs; those whose correction is large must also raise the mutual information of the
-triangle they split (an occlusion fools the flow, not the joint histogram). The pipeline then
-builds the mesh again over the old and the new pairs.
+triangle they split (an occlusion fools the flow, not the joint histogram).
+
+Where the mesh is far off (a triangle across a depth step, or a wide baseline that left few
+pairs) the flow fails its forward-backward test; :func:`epipolar_pairs` then searches for the
+remaining corners along their epipolar lines. The pipeline builds the mesh again over the old
+and the new pairs.
 """
 
 from __future__ import annotations
