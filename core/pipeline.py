@@ -21,7 +21,7 @@ from pwlreg.core.optimizers import OPTIMIZERS
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import epipolar_pairs, guided_pairs
+from pwlreg.core.refine import epipolar_pairs, guide, guided_pairs, levels
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -241,23 +241,21 @@ def register(
     if opts.insert_vertices == "always" or (
         opts.insert_vertices == "automatic" and conjugate.source != "client"
     ):
-        grey = to_gray8(reference), to_gray8(moving)
+        grey = levels(to_gray8(reference), to_gray8(moving))
         insertion = {"inserted": 0}
         for _ in range(INSERTION_ROUNDS):
             budget = insertion_budget(len(conjugate.reference)) - len(ref_meas)
+            current = guide(grey, mesh.reference, mesh.moving, mesh.triangles)
             found = guided_pairs(
-                *grey, mesh.reference, mesh.moving, mesh.triangles, images,
-                measured=len(ref_meas), epsilon=opts.epsilon, epsilon_pixels=opts.epsilon_pixels,
-                budget=budget,
+                current, images, measured=len(ref_meas), epsilon=opts.epsilon,
+                epsilon_pixels=opts.epsilon_pixels, budget=budget,
             )
             new_ref, new_mov = found.reference, found.moving
             _add_counts(insertion, "flow", found.counts)
             if conjugate.epipolar is not None:
                 along = epipolar_pairs(
-                    *grey, np.concatenate([mesh.reference, new_ref]),
-                    np.concatenate([mesh.moving, new_mov]), mesh.triangles,
-                    conjugate.epipolar.matrix, images, measured=len(ref_meas),
-                    budget=budget - len(new_ref), epsilon=opts.epsilon,
+                    current, images, conjugate.epipolar.matrix, added=(new_ref, new_mov),
+                    measured=len(ref_meas), budget=budget - len(new_ref), epsilon=opts.epsilon,
                     epsilon_pixels=opts.epsilon_pixels, threshold=conjugate.epipolar.threshold,
                 )
                 _add_counts(insertion, "epipolar", along.counts)

@@ -66,10 +66,80 @@ class Insertion:
     counts: dict[str, int]
 
 
-def _level(image: np.ndarray, halvings: int) -> np.ndarray:
-    for _ in range(halvings):
-        image = cv2.pyrDown(image)
-    return image
+@dataclass(frozen=True)
+class Levels:
+    """Both grey images reduced to at most :data:`REFINE_SIDE` pixels (:func:`levels`), so
+    time and memory of the insertion do not grow with the rasters.
+
+    Attributes
+    ----------
+    scale : float
+        Level pixels per image pixel (a power of one half).
+    reference, moving : ndarray of uint8
+        The levels.
+    shape : (int, int)
+        ``(height, width)`` of the full reference image.
+    """
+
+    scale: float
+    reference: np.ndarray
+    moving: np.ndarray
+    shape: tuple[int, int]
+
+
+def levels(reference_gray: np.ndarray, moving_gray: np.ndarray) -> Levels:
+    """The :class:`Levels` of two grey uint8 images (halved together while the reference is
+    wider than :data:`REFINE_SIDE`)."""
+    ref, mov = reference_gray, moving_gray
+    scale = 1.0
+    while max(ref.shape) * scale > REFINE_SIDE:
+        ref, mov, scale = cv2.pyrDown(ref), cv2.pyrDown(mov), scale / 2
+    return Levels(scale, ref, mov, reference_gray.shape[:2])
+
+
+@dataclass(frozen=True)
+class Guide:
+    """A mesh seen on the :class:`Levels` (:func:`guide`): what both insertion sources start
+    from.
+
+    Attributes
+    ----------
+    levels : Levels
+    reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        The mesh's vertices (image pixels, float64).
+    triangles : ndarray, shape (T, 3)
+    map_x, map_y : ndarray of float32
+        Position in the moving level of each reference-level pixel; -1 outside the mesh.
+    label : ndarray of int32
+        Triangle owning each reference-level pixel, -1 outside the mesh.
+    """
+
+    levels: Levels
+    reference_vertices: np.ndarray
+    moving_vertices: np.ndarray
+    triangles: np.ndarray
+    map_x: np.ndarray
+    map_y: np.ndarray
+    label: np.ndarray
+
+
+def guide(
+    image_levels: Levels,
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+) -> Guide:
+    """The :class:`Guide` of a mesh on ``image_levels``."""
+    ref_v = np.asarray(reference_vertices, dtype=np.float64)
+    mov_v = np.asarray(moving_vertices, dtype=np.float64)
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    scale = image_levels.scale
+    map_x, map_y, label = piecewise_map(_to_level(ref_v, scale), _to_level(mov_v, scale), tris,
+                                        image_levels.reference.shape)
+    inside = label >= 0
+    return Guide(image_levels, ref_v, mov_v, tris,
+                 np.where(inside, map_x, -1.0).astype(np.float32),
+                 np.where(inside, map_y, -1.0).astype(np.float32), label)
 
 
 def _to_level(points: np.ndarray, scale: float) -> np.ndarray:
@@ -87,11 +157,7 @@ def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def guided_pairs(
-    reference_gray: np.ndarray,
-    moving_gray: np.ndarray,
-    reference_vertices: np.ndarray,
-    moving_vertices: np.ndarray,
-    triangles: np.ndarray,
+    mesh: Guide,
     images: ScoringImages,
     *,
     measured: int,
@@ -101,17 +167,12 @@ def guided_pairs(
 ) -> Insertion:
     """New conjugate pairs from the residual flow of the registered image.
 
-    Everything but the mutual-information test runs on a level of both images at most
-    :data:`REFINE_SIDE` pixels wide, so time and memory do not grow with the rasters.
+    Everything but the mutual-information test runs on the guide's levels.
 
     Parameters
     ----------
-    reference_gray, moving_gray : ndarray of uint8
-        Grey images.
-    reference_vertices, moving_vertices : ndarray, shape (N, 2)
-        The mesh's vertices (pixels).
-    triangles : ndarray, shape (T, 3)
-        The mesh.
+    mesh : Guide
+        The current mesh on the levels of the grey images.
     images : ScoringImages
         For the mutual-information test of large corrections (full resolution).
     measured : int
@@ -130,22 +191,10 @@ def guided_pairs(
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
-    h, w = reference_gray.shape
-    halvings = 0
-    while max(h, w) / 2**halvings > REFINE_SIDE:
-        halvings += 1
-    scale = 0.5**halvings
-    ref_l = _level(reference_gray, halvings)
-    mov_l = _level(moving_gray, halvings)
-    ref_v = np.asarray(reference_vertices, dtype=np.float64)
-    mov_v = np.asarray(moving_vertices, dtype=np.float64)
-    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    # The map of the level's reference grid into the level's moving image: the same mesh.
-    map_x, map_y, label = piecewise_map(_to_level(ref_v, scale), _to_level(mov_v, scale), tris,
-                                        ref_l.shape)
-    inside = label >= 0
-    map_x = np.where(inside, map_x, -1.0).astype(np.float32)
-    map_y = np.where(inside, map_y, -1.0).astype(np.float32)
+    h, w = mesh.levels.shape
+    scale, ref_l, mov_l = mesh.levels.scale, mesh.levels.reference, mesh.levels.moving
+    ref_v, mov_v, tris = mesh.reference_vertices, mesh.moving_vertices, mesh.triangles
+    map_x, map_y, inside = mesh.map_x, mesh.map_y, mesh.label >= 0
     registered = cv2.remap(mov_l, map_x, map_y, cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
@@ -280,14 +329,11 @@ LR_PX = 1.0
 
 
 def epipolar_pairs(
-    reference_gray: np.ndarray,
-    moving_gray: np.ndarray,
-    reference_vertices: np.ndarray,
-    moving_vertices: np.ndarray,
-    triangles: np.ndarray,
-    fundamental: np.ndarray,
+    mesh: Guide,
     images: ScoringImages,
+    fundamental: np.ndarray,
     *,
+    added: tuple[np.ndarray, np.ndarray],
     measured: int,
     budget: int,
     epsilon: float,
@@ -302,14 +348,18 @@ def epipolar_pairs(
     searched for along its epipolar line, over the segment the displacements of its
     neighbouring vertices span (a point of a piecewise-planar scene moves like one of the
     surfaces around it), with a patch shaped by the local affine map of the mesh. A match must
-    correlate well, have no rival peak along the line (repeated texture), lie within
-    ``threshold`` of the line, and -- when it corrects the mesh by more than :data:`SMALL_PX`
-    -- raise the mutual information of the triangle it splits.
+    correlate well, have no rival peak along the line (repeated texture), come back to its
+    point when searched for the other way, lie within ``threshold`` of the line, not be
+    contradicted by its neighbours, and -- when it corrects the mesh by more than
+    :data:`SMALL_PX` -- raise the mutual information of the triangle it splits.
 
     Parameters
     ----------
     fundamental : ndarray, shape (3, 3)
         ``x_mov^T F x_ref = 0`` in pixels of the full images.
+    added : (ndarray, ndarray)
+        Pairs ``(reference (K, 2), moving (K, 2))`` already found for this mesh (by
+        :func:`guided_pairs`): new pairs keep their distance and they count as neighbours.
     threshold : float
         Largest Sampson distance (pixels) of a match to the epipolar geometry.
 
@@ -324,18 +374,16 @@ def epipolar_pairs(
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
-    h, w = reference_gray.shape
-    halvings = 0
-    while max(h, w) / 2**halvings > REFINE_SIDE:
-        halvings += 1
-    scale = 0.5**halvings
-    ref_l = _level(reference_gray, halvings).astype(np.float32)
-    mov_l = _level(moving_gray, halvings).astype(np.float32)
-    ref_v = np.asarray(reference_vertices, dtype=np.float64)
-    mov_v = np.asarray(moving_vertices, dtype=np.float64)
-    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    h, w = mesh.levels.shape
+    scale = mesh.levels.scale
+    ref_l = mesh.levels.reference.astype(np.float32)
+    mov_l = mesh.levels.moving.astype(np.float32)
+    tris = mesh.triangles
+    # The vertices and the pairs found already: new pairs keep away from both.
+    ref_v = np.concatenate([mesh.reference_vertices, added[0]])
+    mov_v = np.concatenate([mesh.moving_vertices, added[1]])
     ref_lv, mov_lv = _to_level(ref_v, scale), _to_level(mov_v, scale)
-    map_x, map_y, label = piecewise_map(ref_lv, mov_lv, tris, ref_l.shape)
+    label = mesh.label
     # Pixels of the level -> of the image: x = (x_l + 0.5) / scale - 0.5.
     to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
                         [0, 0, 1]])
@@ -364,8 +412,13 @@ def epipolar_pairs(
 
     affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
     linear = affine[:, :, :2]
-    predicted = np.column_stack([_sample(map_x.astype(np.float32), points),
-                                 _sample(map_y.astype(np.float32), points)])
+    predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
+    # A point whose bilinear neighbourhood leaves the mesh has no prediction (the map is -1
+    # there).
+    x0, y0 = np.floor(points).astype(np.int64).T
+    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
+    unmapped = (label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0) | (label[y1, x1] < 0)
+    predicted[unmapped] = np.nan
     line = _lines(F, points)
     foot = _foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 
 from pwlreg.core.pipeline import register
-from pwlreg.core.refine import epipolar_pairs, guided_pairs
+from pwlreg.core.refine import epipolar_pairs, guide, guided_pairs, levels
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
@@ -31,23 +31,30 @@ def _mean_epe(result) -> float:
     return float(np.nanmean(np.hypot(mx - tx, my - ty)[label >= 0]))
 
 
-def test_guided_pairs_lie_on_the_true_map() -> None:
-    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
-    ref, mov = _far_points()
-    mesh, _ = initial_mesh(ref, mov, 25.0)
-    found = guided_pairs(ref_img, mov_img, mesh.reference, mesh.moving, mesh.triangles,
-                         prepare_images(ref_img, mov_img, 16), measured=len(ref), budget=len(ref),
-                         epsilon=0.01, epsilon_pixels=250.0)
-    assert found.counts["inserted"] == len(found.reference) >= 10, found.counts
-    assert found.counts["inserted"] <= len(ref)  # the budget
+def _misses(mesh, found) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
+    """Distance (px) of each new pair's moving point to the truth, and of the old mesh's map
+    there."""
     truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1], CREASE))
-    miss = np.hypot(*(found.moving - truth).T)
-    assert np.median(miss) < 0.5 and miss.max() < 2.0, np.sort(miss)[-5:]
-    # Near the fold the old map was wrong by pixels: the new pairs correct it there.
     mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, SIZE[::-1])
     cells = np.rint(found.reference).astype(int)
     old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
                         my[cells[:, 1], cells[:, 0]] - truth[:, 1])
+    return np.hypot(*(found.moving - truth).T), old_miss
+
+
+def test_guided_pairs_lie_on_the_true_map() -> None:
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    ref, mov = _far_points()
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    found = guided_pairs(guide(levels(ref_img, mov_img), mesh.reference, mesh.moving,
+                               mesh.triangles),
+                         prepare_images(ref_img, mov_img, 16), measured=len(ref), budget=len(ref),
+                         epsilon=0.01, epsilon_pixels=250.0)
+    assert found.counts["inserted"] == len(found.reference) >= 10, found.counts
+    assert found.counts["inserted"] <= len(ref)  # the budget
+    miss, old_miss = _misses(mesh, found)
+    assert np.median(miss) < 0.5 and miss.max() < 2.0, np.sort(miss)[-5:]
+    # Near the fold the old map was wrong by pixels: the new pairs correct it there.
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
 
 
@@ -59,9 +66,12 @@ BOOK_F = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [-0.5, -0.5, 0.0]])
 def _epipolar_pairs(ref_img: np.ndarray, mov_img: np.ndarray):  # type: ignore[no-untyped-def]
     ref, mov = _far_points()
     mesh, _ = initial_mesh(ref, mov, 25.0)
-    found = epipolar_pairs(ref_img, mov_img, mesh.reference, mesh.moving, mesh.triangles, BOOK_F,
-                           prepare_images(ref_img, mov_img, 16), measured=len(ref),
-                           budget=len(ref), epsilon=0.01, epsilon_pixels=250.0, threshold=1.5)
+    none = np.zeros((0, 2))
+    found = epipolar_pairs(guide(levels(ref_img, mov_img), mesh.reference, mesh.moving,
+                                 mesh.triangles),
+                           prepare_images(ref_img, mov_img, 16), BOOK_F, added=(none, none),
+                           measured=len(ref), budget=len(ref), epsilon=0.01,
+                           epsilon_pixels=250.0, threshold=1.5)
     return mesh, found
 
 
@@ -69,13 +79,8 @@ def test_epipolar_pairs_lie_on_the_true_map() -> None:
     ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
     mesh, found = _epipolar_pairs(ref_img, mov_img)
     assert 10 <= found.counts["inserted"] == len(found.reference) <= len(mesh.reference)
-    truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1], CREASE))
-    miss = np.hypot(*(found.moving - truth).T)
+    miss, old_miss = _misses(mesh, found)
     assert np.median(miss) < 0.5 and miss.max() < 1.5, np.sort(miss)[-5:]
-    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, SIZE[::-1])
-    cells = np.rint(found.reference).astype(int)
-    old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
-                        my[cells[:, 1], cells[:, 0]] - truth[:, 1])
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
 
 
