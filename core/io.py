@@ -22,6 +22,7 @@ from pwlreg.core.formats.geotiff import is_tiff, probe_tiff, read_tiff
 from pwlreg.core.formats.png import write_image
 from pwlreg.core.formats.points import is_gis_points, read_gis_points
 from pwlreg.core.imaging import check_image
+from pwlreg.core.moves import move_counts
 
 if TYPE_CHECKING:
     from pwlreg.core.pipeline import RegistrationResult
@@ -268,7 +269,9 @@ def mesh_document(result: RegistrationResult) -> dict:
         ],
         "extrapolated": result.extrapolated.tolist(),
         "inserted": result.inserted.tolist(),
+        "vertex_origins": result.origins,
         "insertion": result.insertion,
+        "moves": move_counts(result.origins, result.search.steps),
         "quality": result.quality.to_dict(),
         "triangle_scores": [
             None if not np.isfinite(v) else round(float(v), 4)
@@ -311,6 +314,7 @@ def convergence_document(result: RegistrationResult) -> dict:
             for st in s.steps
         ],
         "final": {"mi": s.final_mi, "nmi": s.final_nmi},
+        "moves": move_counts(result.origins, s.steps),
         "stopped_because": s.stopped_because,
         "evaluations": s.evaluations,
     }

@@ -16,12 +16,13 @@ from pwlreg.core.extent import frame_vertices
 from pwlreg.core.imaging import matching_image, to_gray8
 from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
+from pwlreg.core.moves import MOVES, Search, insertions
 from pwlreg.core.optimize import SearchResult
 from pwlreg.core.optimizers import OPTIMIZERS
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import epipolar_pairs, guide, guided_pairs, levels
+from pwlreg.core.refine import guide, levels
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -72,8 +73,10 @@ class RegistrationResult:
     quality : Quality
         Verdict (``good``, ``doubtful``, ``unreliable``), its reasons and figures, and a score
         per final triangle.
-    inserted : ndarray of bool, shape (N,)
-        Per vertex, whether it was inserted by :func:`core.refine.guided_pairs`.
+    origins : list of str
+        Per vertex, what put it there: ``"client"`` (given points), ``"matched"`` (the
+        automatic matcher), ``"frame"`` (extrapolated border, ``extent="frame"``) or the name
+        of the insertion move of :data:`core.moves.MOVES` that found it.
     insertion : dict of str to int or None
         The counts of the insertion step (None when it did not run).
     """
@@ -91,8 +94,13 @@ class RegistrationResult:
     reference_size: tuple[int, int]
     moving_size: tuple[int, int]
     quality: Quality
-    inserted: np.ndarray
+    origins: list[str]
     insertion: dict[str, int] | None
+
+    @property
+    def inserted(self) -> np.ndarray:
+        """Per vertex, whether an insertion move of :data:`core.moves.MOVES` found it."""
+        return np.array([o in MOVES for o in self.origins], bool)
 
     @property
     def extrapolated(self) -> np.ndarray:
@@ -238,39 +246,38 @@ def register(
     mesh, tri_report = build(conjugate.reference, conjugate.moving)
     insertion = None
     ref_meas, mov_meas = conjugate.reference, conjugate.moving
+    origin = ["client" if conjugate.source == "client" else "matched"] * len(ref_meas)
     if opts.insert_vertices == "always" or (
         opts.insert_vertices == "automatic" and conjugate.source != "client"
     ):
         grey = levels(to_gray8(reference), to_gray8(moving))
         insertion = {"inserted": 0}
         for _ in range(INSERTION_ROUNDS):
-            budget = insertion_budget(len(conjugate.reference)) - len(ref_meas)
             current = guide(grey, mesh.reference, mesh.moving, mesh.triangles)
-            found = guided_pairs(
-                current, images, measured=len(ref_meas), epsilon=opts.epsilon,
-                epsilon_pixels=opts.epsilon_pixels, budget=budget,
-            )
-            new_ref, new_mov = found.reference, found.moving
-            _add_counts(insertion, "flow", found.counts)
-            if conjugate.epipolar is not None:
-                along = epipolar_pairs(
-                    current, images, conjugate.epipolar.matrix, added=(new_ref, new_mov),
-                    measured=len(ref_meas), budget=budget - len(new_ref), epsilon=opts.epsilon,
-                    epsilon_pixels=opts.epsilon_pixels, threshold=conjugate.epipolar.threshold,
-                )
-                _add_counts(insertion, "epipolar", along.counts)
-                new_ref = np.concatenate([new_ref, along.reference])
-                new_mov = np.concatenate([new_mov, along.moving])
+            new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
+            for name, move in insertions():
+                found = move.find(current, Search(
+                    images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
+                    budget=insertion_budget(len(conjugate.reference)) - len(ref_meas)
+                    - len(new_ref), added=(new_ref, new_mov), epsilon=opts.epsilon,
+                    epsilon_pixels=opts.epsilon_pixels))
+                if found is None:
+                    continue
+                _add_counts(insertion, name, found.counts)
+                new_ref = np.concatenate([new_ref, found.reference])
+                new_mov = np.concatenate([new_mov, found.moving])
+                origin += [name] * len(found.reference)
             if not len(new_ref):
                 break
             ref_meas = np.concatenate([ref_meas, new_ref])
             mov_meas = np.concatenate([mov_meas, new_mov])
             mesh, tri_report = build(ref_meas, mov_meas)
-    inserted = np.zeros(len(mesh.reference), bool)
-    if len(ref_meas) > len(conjugate.reference):
-        added = ref_meas[len(conjugate.reference):]
-        distance, _ = cKDTree(quantize(added)).query(mesh.reference)
-        inserted = distance < 1e-9
+    # Which move (or the matcher) put each vertex there: the mesh deduplicated and reordered
+    # the measured pairs, and added the extrapolated border.
+    _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)
+    origins = [origin[i] for i in nearest]
+    origins = ["frame" if e else o for o, e in zip(origins, tri_report.extrapolated, strict=True)]
+    inserted = np.array([o in MOVES for o in origins], bool)
     initial_triangles = mesh.triangles
     timings["triangulation_s"] = time.perf_counter() - t
     report("triangulating", 1.0)
@@ -329,7 +336,7 @@ def register(
         reference_size=(reference.shape[1], reference.shape[0]),
         moving_size=(moving.shape[1], moving.shape[0]),
         quality=quality,
-        inserted=inserted,
+        origins=origins,
         insertion=insertion,
     )
 

@@ -3,6 +3,8 @@
 import cv2
 import numpy as np
 
+from pwlreg.core.io import convergence_document, mesh_document
+from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
 from pwlreg.core.refine import epipolar_pairs, guide, guided_pairs, levels
 from pwlreg.core.similarity import prepare_images
@@ -110,3 +112,15 @@ def test_insertion_lowers_the_error_and_is_recorded() -> None:
     assert refined.inserted.sum() == refined.insertion["inserted"] > 0
     assert len(refined.reference_vertices) == len(refined.points.reference) + refined.inserted.sum()
     assert _mean_epe(refined) < 0.5 * _mean_epe(plain)
+    # Each vertex names what put it there; mesh.json and convergence.json count every move.
+    assert set(plain.origins) == {"client"}
+    for name, _ in insertions():
+        assert refined.origins.count(name) == refined.insertion.get(f"{name} inserted", 0)
+    moves = {m["move"]: m for m in mesh_document(refined)["moves"]}
+    assert moves == {m["move"]: m for m in convergence_document(refined)["moves"]}
+    assert sum(m["count"] for m in moves.values() if m["kind"] == "insertion") == (
+        refined.inserted.sum())
+    assert sum(m["count"] for m in moves.values() if m["kind"] == "swap") == (
+        len(refined.search.steps))
+    assert all(m["reason"] == MOVES[name].reason for name, m in moves.items())
+    assert mesh_document(refined)["vertex_origins"] == refined.origins

@@ -1,0 +1,138 @@
+"""The moves a registration makes on its mesh, one table: :data:`MOVES`.
+
+Two kinds. *Insertions* run while the mesh is built, on the automatic path (or with
+``insert_vertices="always"``): each finds new conjugate pairs from the images guided by the
+current mesh (:class:`core.refine.Guide`), and the mesh is built again over the old and the new
+pairs. *Swaps* are the optimizer's changes of the triangulation (:mod:`core.optimize`), recorded
+step by step with their gain. Every move's name and reason go into ``mesh.json`` and
+``convergence.json``, and every mesh vertex says which move (or the matcher) put it there.
+Adding an insertion source is one entry here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from pwlreg.core.epipolar import EpipolarModel
+from pwlreg.core.refine import Guide, Insertion, epipolar_pairs, guided_pairs
+from pwlreg.core.similarity import ScoringImages
+
+
+@dataclass(frozen=True)
+class Search:
+    """What an insertion source is given besides the mesh.
+
+    Attributes
+    ----------
+    images : ScoringImages
+        Full-resolution scoring images (mutual-information tests).
+    epipolar : EpipolarModel or None
+        The matcher's epipolar geometry, None when it was not estimated.
+    measured : int
+        Measured vertices so far (sets the spacing of new pairs).
+    budget : int
+        Most new pairs this source may return.
+    added : (ndarray, ndarray)
+        Pairs the sources before it found in this round (reference, moving).
+    epsilon, epsilon_pixels : float
+        The swaps' gain threshold (:func:`core.optimize.gain_thresholds`).
+    """
+
+    images: ScoringImages
+    epipolar: EpipolarModel | None
+    measured: int
+    budget: int
+    added: tuple[np.ndarray, np.ndarray]
+    epsilon: float
+    epsilon_pixels: float
+
+
+Finder = Callable[[Guide, Search], "Insertion | None"]
+
+
+@dataclass(frozen=True)
+class Move:
+    """One kind of move.
+
+    Attributes
+    ----------
+    kind : {"insertion", "swap"}
+        When it runs: while the mesh is built, or in the optimizer's search.
+    reason : str
+        Why such a move is made, as ``mesh.json`` and ``convergence.json`` give it.
+    find : callable or None
+        For insertions: ``find(guide, search) -> Insertion`` (None when the source cannot run
+        on this pair).
+    """
+
+    kind: str
+    reason: str
+    find: Finder | None = None
+
+
+def _flow(mesh: Guide, search: Search) -> Insertion:
+    return guided_pairs(mesh, search.images, measured=search.measured, budget=search.budget,
+                        epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels)
+
+
+def _epipolar(mesh: Guide, search: Search) -> Insertion | None:
+    if search.epipolar is None:
+        return None
+    return epipolar_pairs(
+        mesh, search.images, search.epipolar.matrix, added=search.added,
+        measured=search.measured, budget=search.budget, epsilon=search.epsilon,
+        epsilon_pixels=search.epsilon_pixels, threshold=search.epipolar.threshold,
+    )
+
+
+MOVES: dict[str, Move] = {
+    "flow": Move(
+        "insertion",
+        "a reference corner where the residual optical flow of the registered image is "
+        "consistent forward and backward and unique; corrections above 1.5 px also raised the "
+        "mutual information of the triangle they split",
+        _flow,
+    ),
+    "epipolar": Move(
+        "insertion",
+        "a reference corner matched along its epipolar line within the span of its "
+        "neighbours' displacements: correlated, without a rival peak, confirmed both ways, "
+        "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
+        "information of the triangle they split",
+        _epipolar,
+    ),
+    "swap": Move(
+        "swap",
+        "the consistency (cost) of the quad rose by more than its threshold",
+    ),
+    "pair": Move(
+        "swap",
+        "two swaps in a row: the consistency of the three triangles they change rose by more "
+        "than its threshold where neither swap alone did",
+    ),
+}
+"""Move name -> :class:`Move`; insertion sources run in this order."""
+
+#: Origins of mesh vertices that no move made.
+ORIGINS = ("client", "matched", "frame")
+
+
+def insertions() -> list[tuple[str, Move]]:
+    """The insertion sources, in their order."""
+    return [(name, m) for name, m in MOVES.items() if m.kind == "insertion"]
+
+
+def move_counts(origins: list[str], steps: list) -> list[dict]:
+    """Per move of :data:`MOVES` that was made: its name, kind, count and reason.
+
+    ``origins`` are the mesh vertices' origins (a move's name or one of :data:`ORIGINS`),
+    ``steps`` the optimizer's accepted steps (each with a ``move`` name).
+    """
+    made = [*origins, *(s.move for s in steps)]
+    return [
+        {"move": name, "kind": m.kind, "count": made.count(name), "reason": m.reason}
+        for name, m in MOVES.items() if name in made
+    ]
