@@ -231,8 +231,8 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
     ``ref_tris``/``mov_tris``: (T, 3, 2) vertices in pixels; ``ref_bins``/``ref_values``: flat
     reference bins and grey levels; ``moving``: 2-D grey levels; a resampled level ``v`` falls in
     bin ``floor((v - bin_offset) * bin_scale)``, clipped to ``[0, bins - 1]``. ``hist`` is
-    ``(T, bins * bins)`` int64, ``moments`` ``(T, 6)`` or ``(0, 6)`` float64, of levels times
-    ``ref_scale`` / ``mov_scale``. Resampling: bilinear, border replicated.
+    ``(T, bins * bins)`` int32 or int64, ``moments`` ``(T, 6)`` or ``(0, 6)`` float64, of
+    levels times ``ref_scale`` / ``mov_scale``. Resampling: bilinear, border replicated.
     """
     q = np.empty((3, 2), dtype=np.int64)
     m = np.empty((2, 3))

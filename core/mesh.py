@@ -84,6 +84,11 @@ class Mesh:
             raise ValueError("reference and moving vertices must have the same shape")
         self.ref_fixed = [tuple(v) for v in fixed_point(self.reference).tolist()]
         self.mov_fixed = [tuple(v) for v in fixed_point(self.moving).tolist()]
+        # The same, as arrays for the batched predicates (the vertices never change).
+        self._fixed_arrays = (
+            np.array(self.ref_fixed, dtype=np.int64).reshape(-1, 2),
+            np.array(self.mov_fixed, dtype=np.int64).reshape(-1, 2),
+        )
         tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if len(tris) and (tris.min() < 0 or tris.max() >= len(self.reference)):
             raise ValueError("triangle vertex index out of range")
@@ -179,6 +184,22 @@ class Mesh:
         l = sum(self._tris[s1]) - i - j  # type: ignore[arg-type]  # noqa: E741
         return Quad(i, j, k, l, (s0, s1))
 
+    def across(self, e: Edge, apex: int) -> int:
+        """Vertex facing ``apex`` across internal edge ``e``, -1 if there is none.
+
+        The apex of the triangle of ``e`` that does not hold ``apex``; -1 if ``e`` is not
+        internal or if not exactly one of its two triangles holds ``apex``.
+        """
+        owners = self._edges.get(edge_key(*e))
+        if owners is None or len(owners) != 2:
+            return -1
+        t0 = self._tris[owners[0]]
+        t1 = self._tris[owners[1]]
+        in0 = apex in t0  # type: ignore[operator]
+        if in0 == (apex in t1):  # type: ignore[operator]
+            return -1
+        return sum(t1 if in0 else t0) - e[0] - e[1]  # type: ignore[arg-type]
+
     def reversed_slots(self) -> list[int]:
         """Slots of patch reversals: triangles not positively oriented in the moving mesh."""
         live = [(s, t) for s, t in enumerate(self._tris) if t is not None]
@@ -226,19 +247,26 @@ class Mesh:
 
     def swappable_edges(self) -> list[Edge]:
         """Internal edges meeting every swap precondition, sorted (batched :meth:`can_swap`)."""
-        edges = self.internal_edges()
+        return self.swappable(self.internal_edges())
+
+    def swappable(self, edges: list[Edge]) -> list[Edge]:
+        """Those of the internal ``edges`` that meet every swap precondition, in their order
+        (:meth:`can_swap` in one batch)."""
         if not edges:
             return []
-        quads = np.array(
-            [
-                (i, j, sum(self._tris[s0]) - i - j, sum(self._tris[s1]) - i - j)  # type: ignore[arg-type]
-                for (i, j), (s0, s1) in ((e, self._edges[e]) for e in edges)
-            ],
-            dtype=np.int64,
-        )
-        ok = np.array([(min(a, b), max(a, b)) not in self._edges for _, _, a, b in quads])
-        for pts in (self.ref_fixed, self.mov_fixed):
-            p = np.array(pts, dtype=np.int64)[quads]  # (E, 4, 2): i, j, k, l
+        edge_map = self._edges
+        tris = self._tris
+        rows = []
+        for e in edges:
+            i, j = e
+            s0, s1 = edge_map[e]
+            rows.append((i, j, sum(tris[s0]) - i - j, sum(tris[s1]) - i - j))  # type: ignore[arg-type]
+        # Tested on the Python rows: iterating an array's rows costs ten times more.
+        ok = np.array([edge_key(k, l) not in edge_map for _, _, k, l in rows])  # noqa: E741
+        quads = np.array(rows, dtype=np.int64)
+        ref_new = None
+        for xy in self._fixed_arrays:
+            p = xy[quads]  # (E, 4, 2): i, j, k, l
             o = {}
             for name, (a, b, c) in {
                 "ijk": (0, 1, 2),
@@ -252,15 +280,47 @@ class Mesh:
                     - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0])
                 )
             ok &= (o["ijk"] * o["ijl"] < 0) & (o["kli"] * o["klj"] < 0)
-            if pts is self.ref_fixed:
+            if ref_new is None:
                 ref_new = (o["kli"], o["klj"])
             else:
                 ok &= (o["kli"] == ref_new[0]) & (o["klj"] == ref_new[1])
         return [e for e, good in zip(edges, ok.tolist(), strict=True) if good]
 
+    def swappable_quad(self, e: Edge) -> Quad | None:
+        """Quad of ``e`` if ``e`` meets every swap precondition, else None.
+
+        :meth:`swap_blocker` without the reason: the search asks this thousands of times.
+        """
+        i, j = edge_key(*e)
+        owners = self._edges.get((i, j))
+        if owners is None or len(owners) != 2:
+            return None
+        s0, s1 = owners
+        k = sum(self._tris[s0]) - i - j  # type: ignore[arg-type]
+        l = sum(self._tris[s1]) - i - j  # type: ignore[arg-type]  # noqa: E741
+        if (k, l) in self._edges or (l, k) in self._edges:
+            return None
+        flips = []
+        for fixed in (self.ref_fixed, self.mov_fixed):
+            (ix, iy), (jx, jy), (kx, ky), (lx, ly) = fixed[i], fixed[j], fixed[k], fixed[l]
+            ijk = (jx - ix) * (ky - iy) - (jy - iy) * (kx - ix)
+            ijl = (jx - ix) * (ly - iy) - (jy - iy) * (lx - ix)
+            kli = (lx - kx) * (iy - ky) - (ly - ky) * (ix - kx)
+            klj = (lx - kx) * (jy - ky) - (ly - ky) * (jx - kx)
+            # Strictly convex: each diagonal separates the other's ends.
+            if not ((ijk > 0 and ijl < 0) or (ijk < 0 and ijl > 0)):
+                return None
+            if not ((kli > 0 and klj < 0) or (kli < 0 and klj > 0)):
+                return None
+            flips.append(kli > 0)
+        # The new triangles turn the same way in both images (then both do: kli, klj differ).
+        if flips[0] != flips[1]:
+            return None
+        return Quad(i, j, k, l, (s0, s1))
+
     def can_swap(self, e: Edge) -> bool:
         """Whether ``e`` meets every swap precondition."""
-        return self.swap_blocker(e) is None
+        return self.swappable_quad(e) is not None
 
     # -- modifications -------------------------------------------------------------------------
     def swap(self, e: Edge, check: bool = True) -> Edge:

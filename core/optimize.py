@@ -78,8 +78,39 @@ class SearchResult:
 
 
 def _triple(t: Iterable[int]) -> Triple:
-    a, b, c = sorted(t)
+    a, b, c = t
+    # Three compares, not sorted(): the search sorts tens of thousands of triples one by one.
+    if a > b:
+        a, b = b, a
+    if b > c:
+        b, c = c, b
+        if a > b:
+            a, b = b, a
     return (a, b, c)
+
+
+#: Batches of quads larger than this get their triples sorted by numpy, not one by one.
+_NUMPY_BATCH = 32
+
+
+def _sorted_triples(tris: np.ndarray) -> list[Triple]:
+    """Sorted vertex triples of the rows of an int ``(T, 3)`` array, as tuples."""
+    return list(map(tuple, np.sort(tris, axis=1).tolist()))
+
+
+def quad_keys(quads: list[Quad]) -> list[Triple]:
+    """Sorted triples of each quad's two current and two swapped triangles, flattened.
+
+    Four per quad, in the order of :func:`quad_triples`.
+    """
+    if len(quads) > _NUMPY_BATCH:
+        ijkl = np.array([q[:4] for q in quads], dtype=np.int64)
+        return _sorted_triples(ijkl[:, [0, 1, 2, 0, 1, 3, 2, 3, 0, 2, 3, 1]].reshape(-1, 3))
+    keys: list[Triple] = []
+    for q in quads:
+        i, j, k, l = q[:4]  # noqa: E741
+        keys += (_triple((i, j, k)), _triple((i, j, l)), _triple((k, l, i)), _triple((k, l, j)))
+    return keys
 
 
 class TriangleCache:
@@ -113,13 +144,11 @@ class TriangleCache:
 
     def ensure(self, triples: Iterable[Triple]) -> None:
         """Compute, in one batch, the statistics of the triples not cached yet."""
-        missing = list(dict.fromkeys(t for t in triples if t not in self._rows))
+        known = self._rows
+        missing = [t for t in dict.fromkeys(triples) if t not in known]
         if not missing:
             return
         idx = np.array(missing, dtype=np.int64)
-        hist, moments = triangle_statistics(
-            self.images, self.reference[idx], self.moving[idx], self.with_moments
-        )
         start = len(self._rows)
         need = start + len(missing)
         if need > len(self._hist):
@@ -131,15 +160,18 @@ class TriangleCache:
                 grown_m = np.zeros((grow, 6))
                 grown_m[:start] = self._moments[:start]
                 self._moments = grown_m
-        self._hist[start:need] = hist
-        if moments is not None:
-            self._moments[start:need] = moments
-        for offset, t in enumerate(missing):
-            self._rows[t] = start + offset
+        # Counted straight into the cache's rows (zero, never used yet): no copy.
+        triangle_statistics(
+            self.images, self.reference[idx], self.moving[idx], self.with_moments,
+            hist_out=self._hist[start:need],
+            moments_out=self._moments[start:need] if self.with_moments else None,
+        )
+        known.update(zip(missing, range(start, need), strict=True))
 
     def rows(self, triples: Iterable[Triple]) -> np.ndarray:
         """Row indices of cached triples."""
-        return np.array([self._rows[t] for t in triples], dtype=np.int64)
+        known = self._rows
+        return np.array([known[t] for t in triples], dtype=np.int64)
 
     def hist(self, triples: Iterable[Triple]) -> np.ndarray:
         """Summed joint histogram ``(M * M,)`` of cached triples."""
@@ -203,21 +235,24 @@ class QuadScorer:
 
     def deltas_and_pixels(self, mesh: Mesh, edges: list[Edge]) -> tuple[np.ndarray, np.ndarray]:
         """Gain of each swap and the number of reference pixels of its quad."""
-        if not edges:
+        return self.quad_deltas([mesh.quad(e) for e in edges])
+
+    def quad_deltas(self, quads: list[Quad]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`deltas_and_pixels` of the quads themselves (the caller has them already)."""
+        if not quads:
             return np.zeros(0), np.zeros(0)
-        quads = [quad_triples(mesh.quad(e), mesh) for e in edges]
-        self.cache.ensure(t for q in quads for t in q)
-        rows = self.cache.rows(t for q in quads for t in q).reshape(-1, 4)
+        keys = quad_keys(quads)
+        self.cache.ensure(keys)
+        rows = self.cache.rows(keys).reshape(-1, 4)
         h = self.cache.hist_rows(rows)
-        m = self.cache.moment_rows(rows) if self.cost.needs_moments else None
-        bins = self.cache.bins
-        before = self.cost.measure(
-            h[:, 0] + h[:, 1], None if m is None else m[:, 0] + m[:, 1], bins
-        )
-        after = self.cost.measure(
-            h[:, 2] + h[:, 3], None if m is None else m[:, 2] + m[:, 3], bins
-        )
-        return after - before, (h[:, 0] + h[:, 1]).sum(axis=1).astype(np.float64)
+        # Before (current triangles) and after (swapped) side by side: one measure call.
+        sides = h[:, 0::2] + h[:, 1::2]
+        m = None
+        if self.cost.needs_moments:
+            mo = self.cache.moment_rows(rows)
+            m = mo[:, 0::2] + mo[:, 1::2]
+        value = self.cost.measure(sides, m, self.cache.bins)
+        return value[:, 1] - value[:, 0], sides[:, 0].sum(axis=1).astype(np.float64)
 
 
 def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -> np.ndarray:
@@ -253,22 +288,18 @@ def pair_moves(mesh: Mesh, edges: list[Edge], allowed: Callable[[Edge], bool]) -
         (r', m, p), (r', m, r)``.
     """
     rows = []
+    across, has_edge = mesh.across, mesh.has_edge
     for e in edges:
-        q = mesh.quad(e)
-        if not allowed((q.k, q.l)):
+        i, j, k, l = mesh.quad(e)[:4]  # noqa: E741
+        if not allowed((k, l)):
             continue
-        for p, p2 in ((q.i, q.j), (q.j, q.i)):
-            for r, r2 in ((q.k, q.l), (q.l, q.k)):
-                owners = mesh.edge_triangles((p, r))
-                if len(owners) != 2:
+        for p, p2 in ((i, j), (j, i)):
+            for r, r2 in ((k, l), (l, k)):
+                # The outer triangle over the side (p, r) is the one without p2.
+                m = across((p, r), p2)
+                if m < 0 or m == r2 or m == p2 or has_edge((r2, m)) or not allowed((r2, m)):
                     continue
-                outer = [s for s in owners if p2 not in mesh.triangle(s)]
-                if len(outer) != 1:
-                    continue
-                m = sum(mesh.triangle(outer[0])) - p - r
-                if m in (r2, p2) or mesh.has_edge((r2, m)) or not allowed((r2, m)):
-                    continue
-                rows.append((q.i, q.j, q.k, q.l, m, p, r, p2, r2))
+                rows.append((i, j, k, l, m, p, r, p2, r2))
     if not rows:
         return np.zeros((0, 9), dtype=np.int64)
     pairs = np.array(rows, dtype=np.int64)
@@ -349,23 +380,24 @@ def greedy_search(
     scorer = QuadScorer(cache, cost)
     cache.ensure(current)
 
-    def margins(edges: list[Edge]) -> tuple[list[float], list[float]]:
-        gains, pixels = scorer.deltas_and_pixels(mesh, edges)
+    def margins(quads: list[Quad]) -> tuple[list[float], list[float]]:
+        gains, pixels = scorer.quad_deltas(quads)
         over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
         return gains.tolist(), over.tolist()
 
-    gains, over = margins(candidates)
+    gains, over = margins([mesh.quad(e) for e in candidates])
     global_hist = cache.hist(current)
     mi, nmi = (float(v) for v in mutual_information(global_hist, images.bins))
     result = SearchResult(initial_mi=mi, initial_nmi=nmi, evaluations=len(candidates))
 
     retired: set[Edge] = set()
 
-    def eligible(e: Edge) -> bool:
-        if not mesh.can_swap(e):
-            return False
-        q = mesh.quad(e)
-        return edge_key(q.k, q.l) not in retired
+    def eligible(e: Edge) -> Quad | None:
+        """The quad of ``e`` if it may be swapped, else None."""
+        q = mesh.swappable_quad(e)
+        if q is None or edge_key(q.k, q.l) in retired:
+            return None
+        return q
 
     # Keyed by the gain over the edge's threshold; the gain itself is what a step records.
     best: dict[Edge, float] = dict(zip(candidates, over, strict=True))
@@ -375,54 +407,61 @@ def greedy_search(
     stopped = "no swap raises the consistency by more than epsilon"
     if progress is not None:
         progress(0.0)
+    # Accepted swaps, their SwapStep made at the end: the global MI and NMI of every step
+    # come from one batched call over the saved global histograms.
+    taken: list[tuple[Edge, Edge, float, str, float]] = []
+    snapshots: list[np.ndarray] = []
+
+    def move_hist(q: Quad) -> None:
+        """The global histogram after swapping the quad (its four triangles are cached)."""
+        h = cache.hist_rows(cache.rows(quad_keys([q])))
+        global_hist[:] -= h[0]
+        global_hist[:] -= h[1]
+        global_hist[:] += h[2]
+        global_hist[:] += h[3]
+
     def record(e: Edge, added: Edge, delta: float, move: str) -> None:
         if moved is not None:
             moved.update((*e, *added))
-        mi, nmi = (float(v) for v in mutual_information(global_hist, images.bins))
-        result.steps.append(
-            SwapStep(
-                iteration=len(result.steps) + 1,
-                removed=e,
-                added=added,
-                delta=delta,
-                mi=mi,
-                nmi=nmi,
-                elapsed_s=time.perf_counter() - t0,
-                move=move,
-            )
-        )
+        snapshots.append(global_hist.copy())
+        taken.append((e, added, delta, move, time.perf_counter() - t0))
 
     def rescore(edges: Iterable[Edge]) -> None:
-        for b in edges:
+        ring, quads = [], []
+        for b in dict.fromkeys(edges):
             best.pop(b, None)
-        ring = list(dict.fromkeys(b for b in edges if eligible(b)))
-        for b, g, d in zip(ring, *margins(ring), strict=True):
+            q = eligible(b)
+            if q is not None:
+                ring.append(b)
+                quads.append(q)
+        for b, g, d in zip(ring, *margins(quads), strict=True):
             best[b] = d
             gain[b] = g
             heapq.heappush(heap, (-d, b))
         result.evaluations += len(ring)
 
     moved: set[int] | None = None  # vertices of quads changed since the last pass of pairs
+    # Triangles of a pair, as columns of its row (i, j, k, l, m, p, r, p', r'): the three
+    # before, (i, j, k), (i, j, l), (p, r, m), and the three after, (k, l, p'), (r', m, p),
+    # (r', m, r).
+    pair_triangles = np.array([[0, 1, 2], [0, 1, 3], [5, 6, 4], [2, 3, 7], [8, 4, 5], [8, 4, 6]])
 
     def take_pair() -> bool:
         """One pass of pair moves; True if any was taken. After the first pass over the whole
         mesh, only edges touching a quad changed since the previous pass are tried again."""
-        nonlocal global_hist, moved
-        edges = mesh.swappable_edges()
+        nonlocal moved
+        edges = mesh.internal_edges()
         if moved is not None:
             edges = [e for e in edges if e[0] in moved or e[1] in moved]
+        edges = mesh.swappable(edges)
         moved = set()
         pairs = pair_moves(mesh, edges, lambda e: edge_key(*e) not in retired)
         if len(pairs) == 0:
             return False
         listed = pairs.tolist()
-        before = [(_triple((i, j, k)), _triple((i, j, ll)), _triple((p, r, m_)))
-                  for i, j, k, ll, m_, p, r, _, _ in listed]
-        after = [(_triple((k, ll, p2)), _triple((r2, m_, p)), _triple((r2, m_, r)))
-                 for _, _, k, ll, m_, p, r, p2, r2 in listed]
-        cache.ensure(t for group in (before, after) for three in group for t in three)
-        rows = cache.rows(t for b, a in zip(before, after, strict=True) for t in (*b, *a))
-        rows = rows.reshape(-1, 2, 3)
+        keys = _sorted_triples(pairs[:, pair_triangles].reshape(-1, 3))
+        cache.ensure(keys)
+        rows = cache.rows(keys).reshape(-1, 2, 3)
         pair_gain = np.empty(len(rows))
         pixels = np.empty(len(rows))
         bins = cache.bins
@@ -430,41 +469,38 @@ def greedy_search(
             block = rows[start:start + PAIR_BLOCK]
             h = cache.hist_rows(block).sum(axis=2)
             m = cache.moment_rows(block).sum(axis=2) if scorer.cost.needs_moments else None
-            pair_gain[start:start + len(block)] = (
-                scorer.cost.measure(h[:, 1], None if m is None else m[:, 1], bins)
-                - scorer.cost.measure(h[:, 0], None if m is None else m[:, 0], bins))
+            value = scorer.cost.measure(h, m, bins)  # before and after in one call
+            pair_gain[start:start + len(block)] = value[:, 1] - value[:, 0]
             pixels[start:start + len(block)] = h[:, 0].sum(axis=1)
         over_t = pair_gain - gain_thresholds(pixels, epsilon, epsilon_pixels)
         result.evaluations += len(pairs)
         touched: set[int] = set()
-        taken = False
+        any_taken = False
         for n in np.argsort(-over_t, kind="stable"):
-            if over_t[n] <= 0.0 or len(result.steps) + 2 > max_iterations:
+            if over_t[n] <= 0.0 or len(taken) + 2 > max_iterations:
                 break
             i, j, k, ll, m_, p, r, _, r2 = listed[n]
             if touched & {i, j, k, ll, m_}:
                 continue  # scored on a mesh that has changed around it since
             e, b = edge_key(i, j), edge_key(p, r)
             q = mesh.quad(e)
-            old0, old1, new0, new1 = quad_triples(q, mesh)
             added = mesh.swap(e, check=False)
             qb = mesh.quad(b)
-            if {qb.k, qb.l} != {r2, m_} or not eligible(b):
+            if {qb.k, qb.l} != {r2, m_} or eligible(b) is None:
                 mesh.swap(added, check=False)  # the pair's second swap is not there: undo
                 continue
+            move_hist(q)
             retired.add(e)
-            global_hist = global_hist - cache.hist((old0, old1)) + cache.hist((new0, new1))
             delta = float(pair_gain[n])
             record(e, added, delta, "pair")
-            bq = quad_triples(qb, mesh)
+            move_hist(qb)
             added_b = mesh.swap(b, check=False)
             retired.add(b)
-            global_hist = global_hist - cache.hist(bq[:2]) + cache.hist(bq[2:])
             record(b, added_b, delta, "pair")
             touched.update((i, j, k, ll, m_))
             rescore([*q.boundary, *qb.boundary])
-            taken = True
-        return taken
+            any_taken = True
+        return any_taken
 
     while True:
         while heap and best.get(heap[0][1]) != -heap[0][0]:
@@ -473,24 +509,29 @@ def greedy_search(
             if lookahead and take_pair():
                 continue
             break
-        if len(result.steps) >= max_iterations:
+        if len(taken) >= max_iterations:
             stopped = "max_iterations reached"
             break
         _, e = heapq.heappop(heap)
         del best[e]
-        if not eligible(e):
+        q = eligible(e)
+        if q is None:
             # A swap elsewhere created, or retired, the edge this one would add.
             continue
-        q = mesh.quad(e)
-        old0, old1, new0, new1 = quad_triples(q, mesh)
+        move_hist(q)
         added = mesh.swap(e, check=False)
         retired.add(e)
-        global_hist = global_hist - cache.hist((old0, old1)) + cache.hist((new0, new1))
         record(e, added, gain[e], "swap")
         rescore(q.boundary)
-        if progress is not None and len(result.steps) % 16 == 0:
+        if progress is not None and len(taken) % 16 == 0:
             remaining = sum(d > 0.0 for d in best.values())
-            progress(len(result.steps) / (len(result.steps) + remaining))
+            progress(len(taken) / (len(taken) + remaining))
+    if snapshots:
+        step_mi, step_nmi = mutual_information(np.array(snapshots), images.bins)
+        for n, ((e, added, delta, move, elapsed), mi_n, nmi_n) in enumerate(
+            zip(taken, step_mi.tolist(), step_nmi.tolist(), strict=True)
+        ):
+            result.steps.append(SwapStep(n + 1, e, added, delta, mi_n, nmi_n, elapsed, move))
     result.final_mi, result.final_nmi = (
         float(v) for v in mutual_information(global_hist, images.bins))
     result.stopped_because = stopped

@@ -137,6 +137,9 @@ def triangle_statistics(
     reference_triangles: np.ndarray,
     moving_triangles: np.ndarray,
     with_moments: bool = False,
+    *,
+    hist_out: np.ndarray | None = None,
+    moments_out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Joint histograms (and optionally moments) of many triangles in one batched pass.
 
@@ -148,19 +151,30 @@ def triangle_statistics(
         Corresponding triangle vertices in pixels (quantized).
     with_moments : bool
         Also return the six moments of :data:`MOMENTS` (grey levels scaled to [0, 1]).
+    hist_out : ndarray of int32 or int64, shape (T, M * M), optional
+        Zeroed C-contiguous array the histograms are counted into and returned (a cache's rows:
+        no temporary and no copy).
+    moments_out : ndarray of float64, shape (T, 6), optional
+        Likewise for the moments (with ``with_moments``).
 
     Returns
     -------
     hist : ndarray of int64, shape (T, M * M)
-        Row-major joint histogram ``h[a * M + b]`` (a: reference bin, b: moving bin).
+        Row-major joint histogram ``h[a * M + b]`` (a: reference bin, b: moving bin);
+        ``hist_out`` if given.
     moments : ndarray of float64, shape (T, 6) or None
     """
     ref_tri = np.ascontiguousarray(reference_triangles, dtype=np.float64).reshape(-1, 3, 2)
     mov_tri = np.ascontiguousarray(moving_triangles, dtype=np.float64).reshape(-1, 3, 2)
     n_tri = len(ref_tri)
     m = images.bins
-    hist = np.zeros((n_tri, m * m), dtype=np.int64)
-    moments = np.zeros((n_tri if with_moments else 0, 6), dtype=np.float64)
+    hist = np.zeros((n_tri, m * m), dtype=np.int64) if hist_out is None else hist_out
+    if not with_moments:
+        moments = np.zeros((0, 6), dtype=np.float64)
+    elif moments_out is None:
+        moments = np.zeros((n_tri, 6), dtype=np.float64)
+    else:
+        moments = moments_out
     if n_tri:
         kernels.triangle_histograms(
             ref_tri,

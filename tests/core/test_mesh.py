@@ -97,3 +97,33 @@ def test_reversed_slots_detects_flipped_triangle():
 def test_batched_swappable_edges_agree_with_can_swap(seed):
     mesh = _random_mesh(seed, n=40, jitter=6.0)
     assert mesh.swappable_edges() == [e for e in mesh.internal_edges() if mesh.can_swap(e)]
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 2**31))
+def test_swappable_quad_agrees_with_swap_blocker(seed):
+    # The fast single test of the search and the batched one both say what swap_blocker says.
+    mesh = _random_mesh(seed, n=40, jitter=6.0)
+    rng = np.random.default_rng(seed)
+    for _ in range(3):
+        for e in mesh.edges():
+            q = mesh.swappable_quad(e)
+            assert (q is None) == (mesh.swap_blocker(e) is not None)
+            if q is not None:
+                assert q == mesh.quad(e)
+        internal = mesh.internal_edges()
+        some = [e for e in internal if rng.random() < 0.5]
+        assert mesh.swappable(some) == [e for e in some if mesh.can_swap(e)]
+        legal = mesh.swappable_edges()
+        if legal:
+            mesh.swap(legal[int(rng.integers(len(legal)))])
+
+
+def test_across_gives_the_outer_apex():
+    ref = np.array([[0, 0], [10, 0], [10, 10], [0, 10], [5, -20]], float)
+    mesh = Mesh(ref, ref, [[0, 1, 2], [0, 2, 3], [0, 4, 1]])
+    assert mesh.across((0, 1), 2) == 4
+    assert mesh.across((1, 0), 4) == 2
+    assert mesh.across((0, 1), 3) == -1  # 3 is on neither side
+    assert mesh.across((1, 2), 0) == -1  # boundary edge
+    assert mesh.across((1, 3), 0) == -1  # no such edge

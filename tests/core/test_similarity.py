@@ -5,7 +5,7 @@ from scipy.ndimage import map_coordinates
 from scipy.spatial import Delaunay
 
 from pwlreg.core.mesh import Mesh
-from pwlreg.core.optimize import TriangleCache, quad_triples
+from pwlreg.core.optimize import TriangleCache, quad_keys, quad_triples
 from pwlreg.core.raster import quantize
 from pwlreg.core.similarity import (
     level_range,
@@ -131,6 +131,29 @@ def test_quad_histogram_is_exactly_sum_of_its_triangles():
         )
         checked += 1
     assert checked > 10
+
+
+def test_statistics_counted_into_given_rows_and_quad_keys():
+    ref, mov, pts, mpts = _pair(3)
+    tris = Delaunay(pts).simplices
+    images = prepare_images(ref, mov, 16)
+    h, mom = triangle_statistics(images, pts[tris], mpts[tris], with_moments=True)
+    # Into a cache's int32 rows: the same counts and moments, no copy made.
+    rows = np.zeros((len(tris) + 2, 256), dtype=np.int32)
+    moments = np.zeros((len(tris) + 2, 6))
+    h32, m32 = triangle_statistics(images, pts[tris], mpts[tris], with_moments=True,
+                                   hist_out=rows[1:-1], moments_out=moments[1:-1])
+    assert np.shares_memory(h32, rows)
+    np.testing.assert_array_equal(rows[1:-1], h)
+    np.testing.assert_array_equal(moments[1:-1], mom)
+    assert not rows[[0, -1]].any() and not moments[[0, -1]].any()
+    # The triples of many quads, sorted by numpy or one by one, are quad_triples's.
+    mesh = Mesh(pts, mpts, tris)
+    quads = [mesh.quad(e) for e in mesh.internal_edges()]
+    assert len(quads) > 40
+    expected = [t for q in quads for t in quad_triples(q, mesh)]
+    assert quad_keys(quads) == expected
+    assert [t for q in quads for t in quad_keys([q])] == expected
 
 
 def test_sixteen_bit_and_colour_inputs_bin_consistently():
