@@ -174,39 +174,68 @@ def _entropy(counts: np.ndarray, n: float) -> float:
     return h
 
 
-@njit(cache=True)
-def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
-    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``.
+@njit(cache=True, inline="always")
+def _row_information(row: np.ndarray, pa: np.ndarray, pb: np.ndarray, bins: int):  # type: ignore[no-untyped-def]
+    """MI, NMI and total of the float counts ``row`` (bins * bins); ``pa``/``pb`` are scratch.
 
     MI is clamped to [0, min(H(A), H(B))]; a histogram with no or a single occupied cell has
     ``H(A, B) = 0`` and gets MI = NMI = 0 (no information, not a perfect match).
     """
+    pa[:] = 0.0
+    pb[:] = 0.0
+    n = 0.0
+    for a in range(bins):
+        for b in range(bins):
+            c = row[a * bins + b]
+            n += c
+            pa[a] += c
+            pb[b] += c
+    if n == 0.0:
+        return 0.0, 0.0, n
+    h_ab = _entropy(row, n)
+    if h_ab <= 1e-12:
+        return 0.0, 0.0, n
+    h_a = _entropy(pa, n)
+    h_b = _entropy(pb, n)
+    value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
+    return value, value / h_ab, n
+
+
+@njit(cache=True)
+def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
+    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``
+    (:func:`_row_information`)."""
     pa = np.empty(bins)
     pb = np.empty(bins)
     row = np.empty(bins * bins)
     for r in range(hist.shape[0]):
-        pa[:] = 0.0
-        pb[:] = 0.0
-        n = 0.0
-        for a in range(bins):
-            for b in range(bins):
-                c = float(hist[r, a * bins + b])
-                row[a * bins + b] = c
-                n += c
-                pa[a] += c
-                pb[b] += c
-        mi[r] = 0.0
-        nmi[r] = 0.0
-        if n == 0.0:
-            continue
-        h_ab = _entropy(row, n)
-        if h_ab <= 1e-12:
-            continue
-        h_a = _entropy(pa, n)
-        h_b = _entropy(pb, n)
-        value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
-        mi[r] = value
-        nmi[r] = value / h_ab
+        for c in range(bins * bins):
+            row[c] = float(hist[r, c])
+        mi[r], nmi[r], _ = _row_information(row, pa, pb, bins)
+
+
+@njit(cache=True)
+def summed_information(hist, rows, bins, mi, nmi, pixels):  # type: ignore[no-untyped-def]
+    """:func:`information` of sums of rows of ``hist``, without gathering them first.
+
+    Output ``k`` is for ``hist[rows[k]].sum(axis=0)``, ``rows`` (K, S) int64; ``pixels[k]`` gets
+    its total count. The sums are exact integers, so the values are those of
+    :func:`information` on the summed histograms, bit for bit.
+    """
+    nb = bins * bins
+    pa = np.empty(bins)
+    pb = np.empty(bins)
+    counts = np.empty(nb, dtype=np.int64)
+    row = np.empty(nb)
+    for k in range(rows.shape[0]):
+        counts[:] = 0
+        for s in range(rows.shape[1]):
+            src = hist[rows[k, s]]
+            for c in range(nb):
+                counts[c] += src[c]
+        for c in range(nb):
+            row[c] = float(counts[c])
+        mi[k], nmi[k], pixels[k] = _row_information(row, pa, pb, bins)
 
 
 @njit(cache=True)

@@ -221,6 +221,36 @@ def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndar
     return mi.reshape(lead), nmi.reshape(lead)
 
 
+def summed_information(
+    hist: np.ndarray, rows: np.ndarray, bins: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`mutual_information` of sums of histograms, without gathering them.
+
+    Parameters
+    ----------
+    hist : ndarray, shape (R, M * M)
+        Joint counts (int32 or int64), e.g. a cache's table.
+    rows : ndarray of int, shape (..., S)
+        Each output is the sum of ``S`` rows of ``hist``.
+    bins : int
+        M.
+
+    Returns
+    -------
+    mi, nmi, pixels : ndarray, shape (...)
+        MI and NMI (bits) of ``hist[rows].sum(axis=-2)``, the same values bit for bit, and its
+        total count.
+    """
+    idx = np.ascontiguousarray(rows, dtype=np.int64)
+    lead = idx.shape[:-1]
+    idx = idx.reshape(-1, idx.shape[-1])
+    mi = np.empty(len(idx))
+    nmi = np.empty(len(idx))
+    pixels = np.empty(len(idx))
+    kernels.summed_information(hist, idx, bins, mi, nmi, pixels)
+    return mi.reshape(lead), nmi.reshape(lead), pixels.reshape(lead)
+
+
 def ncc(moments: np.ndarray) -> np.ndarray:
     """Normalised cross-correlation in [-1, 1] from summed moments ``(..., 6)``.
 
