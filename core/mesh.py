@@ -184,6 +184,35 @@ class Mesh:
         l = sum(self._tris[s1]) - i - j  # type: ignore[arg-type]  # noqa: E741
         return Quad(i, j, k, l, (s0, s1))
 
+    @property
+    def fixed_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Fixed-point vertices of the reference and the moving mesh, ``(N, 2)`` int64 each."""
+        return self._fixed_arrays
+
+    def edge_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every edge as a code ``i * N + j`` (``N`` vertices), sorted, and its apexes.
+
+        Returns
+        -------
+        codes : ndarray of int64, shape (E,)
+            Sorted; :func:`numpy.searchsorted` finds an edge in it.
+        apexes : ndarray of int64, shape (E, 2)
+            Third vertex of the edge's first and second triangle (the ``k`` and ``l`` of
+            :meth:`quad`, in its order); -1 for the missing second one of a boundary edge.
+        """
+        n = len(self.reference)
+        # Python only gathers the slots; the apexes (vertex sum minus the edge's ends) are numpy.
+        table = np.array(
+            [(i, j, o[0], o[1] if len(o) == 2 else -1) for (i, j), o in self._edges.items()],
+            dtype=np.int64,
+        ).reshape(-1, 4)
+        table = table[np.argsort(table[:, 0] * n + table[:, 1])]
+        i, j, s0, s1 = table.T
+        sums = np.array([sum(t) if t is not None else 0 for t in self._tris] + [0], dtype=np.int64)
+        apexes = sums[np.stack([s0, s1], axis=1)] - (i + j)[:, None]
+        apexes[s1 < 0, 1] = -1
+        return i * n + j, apexes
+
     def across(self, e: Edge, apex: int) -> int:
         """Vertex facing ``apex`` across internal edge ``e``, -1 if there is none.
 

@@ -312,39 +312,54 @@ def pair_moves(mesh: Mesh, edges: list[Edge], allowed: Callable[[Edge], bool]) -
         three triangles go from ``(i, j, k), (i, j, l), (p, r, m)`` to ``(k, l, p'),
         (r', m, p), (r', m, r)``.
     """
-    rows = []
-    across, has_edge = mesh.across, mesh.has_edge
-    for e in edges:
-        i, j, k, l = mesh.quad(e)[:4]  # noqa: E741
-        if not allowed((k, l)):
-            continue
-        for p, p2 in ((i, j), (j, i)):
-            for r, r2 in ((k, l), (l, k)):
-                # The outer triangle over the side (p, r) is the one without p2.
-                m = across((p, r), p2)
-                if m < 0 or m == r2 or m == p2 or has_edge((r2, m)) or not allowed((r2, m)):
-                    continue
-                rows.append((i, j, k, l, m, p, r, p2, r2))
-    if not rows:
+    if not edges:
         return np.zeros((0, 9), dtype=np.int64)
-    pairs = np.array(rows, dtype=np.int64)
+    # Vectorized over every edge and side; ``allowed`` alone is asked one edge at a time.
+    codes, apexes = mesh.edge_table()
+    n = len(mesh.reference)
+
+    def find(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of the edges (a, b) in the table, and whether each exists."""
+        code = np.minimum(a, b) * n + np.maximum(a, b)
+        at = np.minimum(np.searchsorted(codes, code), len(codes) - 1)
+        return at, codes[at] == code
+
+    ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
+    at, _ = find(ij[:, 0], ij[:, 1])
+    quads = np.column_stack([ij, apexes[at]])  # (i, j, k, l) as Mesh.quad gives them
+    keep = [allowed((a, b)) for a, b in quads[:, 2:].tolist()]
+    i, j, k, l = quads[np.array(keep, dtype=bool)].T  # noqa: E741
+    # The four second swaps of each, in the order p in (i, j), then r in (k, l).
+    p, p2 = np.stack([i, i, j, j], axis=1), np.stack([j, j, i, i], axis=1)
+    r, r2 = np.stack([k, l, k, l], axis=1), np.stack([l, k, l, k], axis=1)
+    at, _ = find(p, r)
+    a0, a1 = apexes[at, 0], apexes[at, 1]
+    # The outer triangle over the side (p, r) is the one of its two without p2.
+    m = np.where((a0 == p2) & (a1 != p2), a1, np.where((a1 == p2) & (a0 != p2), a0, -1))
+    ok = (a1 >= 0) & (m >= 0) & (m != r2) & (m != p2)
+    ok &= ~find(r2, np.where(ok, m, r2 + 1))[1]  # the second swap's new edge is not there yet
+    wide = [np.broadcast_to(c[:, None], p.shape) for c in (i, j, k, l)]
+    pairs = np.stack([*wide, m, p, r, p2, r2], axis=-1).reshape(-1, 9)[ok.ravel()]
     m, p, r, r2 = pairs[:, 4], pairs[:, 5], pairs[:, 6], pairs[:, 8]
     ok = np.ones(len(pairs), dtype=bool)
-    signs = []
-    for pts in (mesh.ref_fixed, mesh.mov_fixed):
-        xy = np.array(pts, dtype=np.int64)
+    turns = []
+    for xy in mesh.fixed_arrays:
+        xm, xp, xr, xr2 = xy[m], xy[p], xy[r], xy[r2]
 
-        def orient(a: np.ndarray, b: np.ndarray, c: np.ndarray, xy: np.ndarray = xy) -> np.ndarray:
-            pa, pb, pc = xy[a], xy[b], xy[c]
+        def orient(pa: np.ndarray, pb: np.ndarray, pc: np.ndarray) -> np.ndarray:
             return np.sign((pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1])
                            - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0]))
 
+        new_p, new_r = orient(xr2, xm, xp), orient(xr2, xm, xr)
         # The quad (p, r; r', m) of the second swap is strictly convex...
-        ok &= (orient(p, r, r2) * orient(p, r, m) < 0) & (orient(r2, m, p) * orient(r2, m, r) < 0)
-        signs.append((orient(r2, m, p), orient(r2, m, r)))
+        ok &= (orient(xp, xr, xr2) * orient(xp, xr, xm) < 0) & (new_p * new_r < 0)
+        turns.append((new_p, new_r))
     # ... in both images, and its new triangles turn the same way in both (no reversal).
-    ok &= (signs[0][0] == signs[1][0]) & (signs[0][1] == signs[1][1])
-    return pairs[ok]
+    ok &= (turns[0][0] == turns[1][0]) & (turns[0][1] == turns[1][1])
+    pairs = pairs[ok]
+    # Last, on the fewest rows: the caller's rule on the second swap's new edge.
+    return pairs[np.array([allowed((a, b)) for a, b in pairs[:, [8, 4]].tolist()], dtype=bool)
+                 .reshape(-1)]
 
 
 def greedy_search(

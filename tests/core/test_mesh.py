@@ -127,3 +127,18 @@ def test_across_gives_the_outer_apex():
     assert mesh.across((0, 1), 3) == -1  # 3 is on neither side
     assert mesh.across((1, 2), 0) == -1  # boundary edge
     assert mesh.across((1, 3), 0) == -1  # no such edge
+
+
+def test_edge_table_matches_quads():
+    mesh = _random_mesh(5, n=40, jitter=6.0)
+    for e in mesh.swappable_edges()[:10]:
+        mesh.swap(e)  # owner lists out of their construction order
+    codes, apexes = mesh.edge_table()
+    n = len(mesh.reference)
+    assert codes.tolist() == [i * n + j for i, j in mesh.edges()]
+    for (i, j), (a, b) in zip(mesh.edges(), apexes.tolist(), strict=True):
+        if mesh.is_internal((i, j)):
+            q = mesh.quad((i, j))
+            assert (a, b) == (q.k, q.l)
+        else:
+            assert b == -1 and set(mesh.triangle(mesh.edge_triangles((i, j))[0])) == {i, j, a}

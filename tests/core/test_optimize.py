@@ -232,3 +232,44 @@ def test_lookahead_pairs_gain_what_they_record_over_their_pentagon():
         assert gain == pytest.approx(first.delta, abs=1e-9)
         n += 2
     assert not replay.reversed_slots()
+
+
+def _pair_moves_loop(mesh, edges, allowed):
+    """pair_moves written as the loops of its docstring (the vectorized one must agree)."""
+    rows = []
+    for e in edges:
+        q = mesh.quad(e)
+        if not allowed((q.k, q.l)):
+            continue
+        for p, p2 in ((q.i, q.j), (q.j, q.i)):
+            for r, r2 in ((q.k, q.l), (q.l, q.k)):
+                owners = mesh.edge_triangles((p, r))
+                outer = [s for s in owners if p2 not in mesh.triangle(s)]
+                if len(owners) != 2 or len(outer) != 1:
+                    continue
+                m = sum(mesh.triangle(outer[0])) - p - r
+                if m in (r2, p2) or mesh.has_edge((r2, m)) or not allowed((r2, m)):
+                    continue
+                trial = mesh.copy()  # swapping back would reorder the owners of edges
+                trial.swap(e, check=False)
+                if trial.can_swap((p, r)):
+                    rows.append((q.i, q.j, q.k, q.l, m, p, r, p2, r2))
+    return rows
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_pair_moves_agree_with_the_loops(seed):
+    from pwlreg.core.optimize import pair_moves
+
+    rng = np.random.default_rng(seed)
+    ref = quantize(rng.uniform(0, 200, size=(60, 2)))
+    mesh = Mesh(ref, ref + rng.normal(0, 8, size=ref.shape), Delaunay(ref).simplices)
+    for e in mesh.swappable_edges()[::7]:
+        if mesh.can_swap(e):
+            mesh.swap(e)
+    edges = mesh.swappable_edges()
+    banned = set(edges[::5])
+    allowed = lambda e: (min(e), max(e)) not in banned  # noqa: E731
+    pairs = pair_moves(mesh, edges, allowed)
+    assert len(pairs) > 20
+    assert pairs.tolist() == [list(r) for r in _pair_moves_loop(mesh, edges, allowed)]
