@@ -329,6 +329,10 @@ EPI_BAND = 2
 #: segment searched.
 EPI_MARGIN, EPI_LONGEST = 8, 192
 
+#: Candidates searched per pair the budget allows (a search costs; about one in four to ten
+#: passes the checks).
+EPI_SEARCHED = 4
+
 #: Nearest vertices whose displacements, applied at a point, span its search segment.
 EPI_NEIGHBOURS = 8
 
@@ -414,6 +418,9 @@ def epipolar_pairs(
     cells = np.clip(np.rint(points).astype(np.int64), 0, [lw - 1, lh - 1])
     owner = label[cells[:, 1], cells[:, 0]]
     keep = (far > spacing * MIN_SPACING) & inner & (owner >= 0)
+    # The farthest from the vertices first (the largest gaps), as many as the budget can use.
+    keep = np.flatnonzero(keep)
+    keep = keep[np.argsort(-far[keep], kind="stable")[:EPI_SEARCHED * budget]]
     points, owner = points[keep], owner[keep]
     counts["candidates"] = len(points)
     if not len(points):
