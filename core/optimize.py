@@ -141,7 +141,11 @@ class TriangleCache:
         self.moving = mesh.moving
         self.with_moments = with_moments
         self.bins = images.bins
-        self._rows: dict[Triple, int] = {}
+        # Keyed by the code (a * N + b) * N + c of the sorted triple (N vertices): ints hash
+        # faster than tuples, and numpy makes them for a whole batch.
+        self._n = len(mesh.reference)
+        self._numpy_codes = self._n**3 < 2**62  # else int64 would overflow: Python ints
+        self._rows: dict[int, int] = {}
         # int32: a triangle's counts fit, and half the memory traffic of every gather.
         self._hist = np.zeros((capacity, self.bins * self.bins), dtype=np.int32)
         self._moments = np.zeros((capacity if with_moments else 0, 6), dtype=np.float64)
@@ -149,13 +153,25 @@ class TriangleCache:
     def __len__(self) -> int:
         return len(self._rows)
 
+    def _codes(self, triples: Iterable[Triple]) -> list[int]:
+        n = self._n
+        return [(a * n + b) * n + c for a, b, c in triples]
+
     def ensure(self, triples: Iterable[Triple]) -> None:
         """Compute, in one batch, the statistics of the triples not cached yet."""
+        self._ensure_codes(self._codes(triples))
+
+    def _ensure_codes(self, codes: list[int]) -> None:
         known = self._rows
-        missing = [t for t in dict.fromkeys(triples) if t not in known]
+        missing = [c for c in dict.fromkeys(codes) if c not in known]
         if not missing:
             return
-        idx = np.array(missing, dtype=np.int64)
+        n = self._n
+        if self._numpy_codes:
+            m = np.array(missing, dtype=np.int64)
+            idx = np.stack([m // (n * n), m // n % n, m % n], axis=1)
+        else:
+            idx = np.array([(c // (n * n), c // n % n, c % n) for c in missing], dtype=np.int64)
         start = len(self._rows)
         need = start + len(missing)
         if need > len(self._hist):
@@ -175,10 +191,35 @@ class TriangleCache:
         )
         known.update(zip(missing, range(start, need), strict=True))
 
+    def _code_rows(self, codes: list[int]) -> np.ndarray:
+        known = self._rows
+        return np.array([known[c] for c in codes], dtype=np.int64)
+
     def rows(self, triples: Iterable[Triple]) -> np.ndarray:
         """Row indices of cached triples."""
-        known = self._rows
-        return np.array([known[t] for t in triples], dtype=np.int64)
+        return self._code_rows(self._codes(triples))
+
+    def lookup(self, tris: np.ndarray) -> np.ndarray:
+        """Rows of the triangles ``tris`` (int, shape (..., 3), vertices in any order), their
+        statistics computed first where missing. Shape ``(...)``."""
+        s = np.sort(np.asarray(tris, dtype=np.int64).reshape(-1, 3), axis=1)
+        n = self._n
+        if self._numpy_codes:
+            codes = ((s[:, 0] * n + s[:, 1]) * n + s[:, 2]).tolist()
+        else:
+            codes = self._codes(s.tolist())
+        self._ensure_codes(codes)
+        return self._code_rows(codes).reshape(np.shape(tris)[:-1])
+
+    def quad_rows(self, quads: list[Quad]) -> np.ndarray:
+        """Rows ``(E, 4)`` of each quad's two current and two swapped triangles (the order of
+        :func:`quad_triples`), computed first where missing."""
+        if len(quads) > _NUMPY_BATCH:
+            ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
+            return self.lookup(ijkl[:, [0, 1, 2, 0, 1, 3, 2, 3, 0, 2, 3, 1]].reshape(-1, 4, 3))
+        codes = self._codes(quad_keys(quads))
+        self._ensure_codes(codes)
+        return self._code_rows(codes).reshape(-1, 4)
 
     def hist(self, triples: Iterable[Triple]) -> np.ndarray:
         """Summed joint histogram ``(M * M,)`` of cached triples."""
@@ -262,13 +303,11 @@ class QuadScorer:
         """:meth:`deltas_and_pixels` of the quads themselves (the caller has them already)."""
         if not quads:
             return np.zeros(0), np.zeros(0)
-        keys = quad_keys(quads)
-        self.cache.ensure(keys)
+        rows = self.cache.quad_rows(quads)
         if self.cost.summed is not None:
-            sums = self.cache.rows(keys).reshape(-1, 2, 2)  # (quad, before/after, triangle)
+            sums = rows.reshape(-1, 2, 2)  # (quad, before/after, triangle)
             value, pixels = self.cost.summed(self.cache.table, sums, self.cache.bins)
             return value[:, 1] - value[:, 0], pixels[:, 0]
-        rows = self.cache.rows(keys).reshape(-1, 4)
         h = self.cache.hist_rows(rows)
         # Before (current triangles) and after (swapped) side by side: one measure call.
         sides = h[:, 0::2] + h[:, 1::2]
@@ -454,7 +493,7 @@ def greedy_search(
 
     def move_hist(q: Quad) -> None:
         """The global histogram after swapping the quad (its four triangles are cached)."""
-        h = cache.hist_rows(cache.rows(quad_keys([q])))
+        h = cache.hist_rows(cache.quad_rows([q])[0])
         global_hist[:] -= h[0]
         global_hist[:] -= h[1]
         global_hist[:] += h[2]
@@ -499,9 +538,7 @@ def greedy_search(
         if len(pairs) == 0:
             return False
         listed = pairs.tolist()
-        keys = _sorted_triples(pairs[:, pair_triangles].reshape(-1, 3))
-        cache.ensure(keys)
-        rows = cache.rows(keys).reshape(-1, 2, 3)  # (pair, before/after, triangle)
+        rows = cache.lookup(pairs[:, pair_triangles]).reshape(-1, 2, 3)  # before/after
         bins = cache.bins
         if scorer.cost.summed is not None:
             value, counts = scorer.cost.summed(cache.table, rows, bins)
