@@ -292,7 +292,14 @@ class Mesh:
             rows.append((i, j, sum(tris[s0]) - i - j, sum(tris[s1]) - i - j))  # type: ignore[arg-type]
         # Tested on the Python rows: iterating an array's rows costs ten times more.
         ok = np.array([edge_key(k, l) not in edge_map for _, _, k, l in rows])  # noqa: E741
-        quads = np.array(rows, dtype=np.int64)
+        ok &= self.convex_mask(np.array(rows, dtype=np.int64))
+        return [e for e, good in zip(edges, ok.tolist(), strict=True) if good]
+
+    def convex_mask(self, quads: np.ndarray) -> np.ndarray:
+        """The geometric swap preconditions of quads ``(E, 4)`` rows ``(i, j, k, l)``, batched:
+        strictly convex in both meshes, new triangles not reversed (all but "the new edge does
+        not exist yet", which the caller tests)."""
+        ok = np.ones(len(quads), dtype=bool)
         ref_new = None
         for xy in self._fixed_arrays:
             p = xy[quads]  # (E, 4, 2): i, j, k, l
@@ -313,7 +320,7 @@ class Mesh:
                 ref_new = (o["kli"], o["klj"])
             else:
                 ok &= (o["kli"] == ref_new[0]) & (o["klj"] == ref_new[1])
-        return [e for e, good in zip(edges, ok.tolist(), strict=True) if good]
+        return ok
 
     def swappable_quad(self, e: Edge) -> Quad | None:
         """Quad of ``e`` if ``e`` meets every swap precondition, else None.

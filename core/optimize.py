@@ -334,8 +334,16 @@ def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -
     return np.clip(scaled, low * epsilon, high * epsilon)
 
 
-def pair_moves(mesh: Mesh, edges: list[Edge], allowed: Callable[[Edge], bool]) -> np.ndarray:
+def pair_moves(
+    mesh: Mesh,
+    edges: list[Edge] | None,
+    allowed: Callable[[Edge], bool],
+    near: Iterable[int] | None = None,
+) -> np.ndarray:
     """Every valid pair of swaps starting with one of ``edges`` (each already swappable).
+
+    ``edges`` None stands for every swappable edge of the mesh, in order, or with ``near``
+    those with an end among these vertices (found in one batch with the pairs).
 
     Swapping ``e = (i, j)`` of quad ``(i, j; k, l)`` makes triangles ``(k, l, i)`` and
     ``(k, l, j)``; a second swap then turns one of the quad's sides ``b = (p, r)`` (``p`` in
@@ -351,7 +359,7 @@ def pair_moves(mesh: Mesh, edges: list[Edge], allowed: Callable[[Edge], bool]) -
         three triangles go from ``(i, j, k), (i, j, l), (p, r, m)`` to ``(k, l, p'),
         (r', m, p), (r', m, r)``.
     """
-    if not edges:
+    if edges is not None and not edges:
         return np.zeros((0, 9), dtype=np.int64)
     # Vectorized over every edge and side; ``allowed`` alone is asked one edge at a time.
     codes, apexes = mesh.edge_table()
@@ -363,9 +371,17 @@ def pair_moves(mesh: Mesh, edges: list[Edge], allowed: Callable[[Edge], bool]) -
         at = np.minimum(np.searchsorted(codes, code), len(codes) - 1)
         return at, codes[at] == code
 
-    ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
-    at, _ = find(ij[:, 0], ij[:, 1])
-    quads = np.column_stack([ij, apexes[at]])  # (i, j, k, l) as Mesh.quad gives them
+    if edges is None:
+        quads = np.column_stack([codes // n, codes % n, apexes])[apexes[:, 1] >= 0]
+        if near is not None:
+            ends = np.fromiter(near, dtype=np.int64)
+            quads = quads[np.isin(quads[:, 0], ends) | np.isin(quads[:, 1], ends)]
+        # Mesh.swappable's tests: the new edge is not there, and the quad's geometry.
+        quads = quads[~find(quads[:, 2], quads[:, 3])[1] & mesh.convex_mask(quads)]
+    else:
+        ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
+        at, _ = find(ij[:, 0], ij[:, 1])
+        quads = np.column_stack([ij, apexes[at]])  # (i, j, k, l) as Mesh.quad gives them
     keep = [allowed((a, b)) for a, b in quads[:, 2:].tolist()]
     i, j, k, l = quads[np.array(keep, dtype=bool)].T  # noqa: E741
     # The four second swaps of each, in the order p in (i, j), then r in (k, l).
@@ -486,23 +502,18 @@ def greedy_search(
     stopped = "no swap raises the consistency by more than epsilon"
     if progress is not None:
         progress(0.0)
-    # Accepted swaps, their SwapStep made at the end: the global MI and NMI of every step
-    # come from one batched call over the saved global histograms.
+    # Accepted swaps, their SwapStep made at the end: the global histogram after every step is
+    # a cumulative sum of the steps' changes, and its MI and NMI one batched call.
     taken: list[tuple[Edge, Edge, float, str, float]] = []
-    snapshots: list[np.ndarray] = []
+    moves: list[np.ndarray] = []  # cache rows of each step's quad: two removed, two added
 
     def move_hist(q: Quad) -> None:
-        """The global histogram after swapping the quad (its four triangles are cached)."""
-        h = cache.hist_rows(cache.quad_rows([q])[0])
-        global_hist[:] -= h[0]
-        global_hist[:] -= h[1]
-        global_hist[:] += h[2]
-        global_hist[:] += h[3]
+        """Note the global histogram's change by swapping the quad (its triangles are cached)."""
+        moves.append(cache.quad_rows([q])[0])
 
     def record(e: Edge, added: Edge, delta: float, move: str) -> None:
         if moved is not None:
             moved.update((*e, *added))
-        snapshots.append(global_hist.copy())
         taken.append((e, added, delta, move, time.perf_counter() - t0))
 
     def rescore(edges: Iterable[Edge]) -> None:
@@ -529,12 +540,8 @@ def greedy_search(
         """One pass of pair moves; True if any was taken. After the first pass over the whole
         mesh, only edges touching a quad changed since the previous pass are tried again."""
         nonlocal moved
-        edges = mesh.internal_edges()
-        if moved is not None:
-            edges = [e for e in edges if e[0] in moved or e[1] in moved]
-        edges = mesh.swappable(edges)
+        pairs = pair_moves(mesh, None, lambda e: edge_key(*e) not in retired, near=moved)
         moved = set()
-        pairs = pair_moves(mesh, edges, lambda e: edge_key(*e) not in retired)
         if len(pairs) == 0:
             return False
         listed = pairs.tolist()
@@ -609,8 +616,13 @@ def greedy_search(
         if progress is not None and len(taken) % 16 == 0:
             remaining = sum(d > 0.0 for d in best.values())
             progress(len(taken) / (len(taken) + remaining))
-    if snapshots:
-        step_mi, step_nmi = mutual_information(np.array(snapshots), images.bins)
+    if taken:
+        r = np.array(moves)
+        table = cache.table
+        change = table[r[:, 2]].astype(np.int64) + table[r[:, 3]] - table[r[:, 0]] - table[r[:, 1]]
+        snapshots = global_hist + np.cumsum(change, axis=0)
+        global_hist = snapshots[-1]
+        step_mi, step_nmi = mutual_information(snapshots, images.bins)
         for n, ((e, added, delta, move, elapsed), mi_n, nmi_n) in enumerate(
             zip(taken, step_mi.tolist(), step_nmi.tolist(), strict=True)
         ):

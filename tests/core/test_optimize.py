@@ -273,3 +273,10 @@ def test_pair_moves_agree_with_the_loops(seed):
     pairs = pair_moves(mesh, edges, allowed)
     assert len(pairs) > 20
     assert pairs.tolist() == [list(r) for r in _pair_moves_loop(mesh, edges, allowed)]
+    # The mesh's own swappable edges, all or near some vertices, found with the pairs.
+    np.testing.assert_array_equal(pair_moves(mesh, None, allowed), pairs)
+    near = {3, 17, 40}
+    nearby = [e for e in edges if e[0] in near or e[1] in near]
+    np.testing.assert_array_equal(pair_moves(mesh, None, allowed, near=near),
+                                  pair_moves(mesh, nearby, allowed).reshape(-1, 9))
+    assert pair_moves(mesh, None, allowed, near=set()).shape == (0, 9)
