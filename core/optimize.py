@@ -9,6 +9,7 @@ consistency after a swap an O(M^2) update.
 from __future__ import annotations
 
 import heapq
+import math
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -161,17 +162,34 @@ class TriangleCache:
         """Compute, in one batch, the statistics of the triples not cached yet."""
         self._ensure_codes(self._codes(triples))
 
-    def _ensure_codes(self, codes: list[int]) -> None:
+    def _ensure_codes(self, codes: list[int], triples: list[Triple] | None = None) -> None:
+        """Compute the codes not cached yet; ``triples``, if given, are those of ``codes``."""
         known = self._rows
-        missing = [c for c in dict.fromkeys(codes) if c not in known]
-        if not missing:
-            return
+        if triples is not None:  # a few: no decoding
+            fresh = {c: t for c, t in zip(codes, triples, strict=True) if c not in known}
+            if not fresh:
+                return
+            missing = list(fresh)
+            idx = np.array(list(fresh.values()), dtype=np.int64)
+        else:
+            missing = [c for c in dict.fromkeys(codes) if c not in known]
+            if not missing:
+                return
+            idx = self._decode(missing)
+        self._compute(missing, idx)
+
+    def _decode(self, missing: list[int]) -> np.ndarray:
         n = self._n
         if self._numpy_codes:
             m = np.array(missing, dtype=np.int64)
             idx = np.stack([m // (n * n), m // n % n, m % n], axis=1)
         else:
             idx = np.array([(c // (n * n), c // n % n, c % n) for c in missing], dtype=np.int64)
+        return idx
+
+    def _compute(self, missing: list[int], idx: np.ndarray) -> None:
+        """Statistics of the triangles ``idx`` (M, 3), cached under the codes ``missing``."""
+        known = self._rows
         start = len(self._rows)
         need = start + len(missing)
         if need > len(self._hist):
@@ -217,8 +235,9 @@ class TriangleCache:
         if len(quads) > _NUMPY_BATCH:
             ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
             return self.lookup(ijkl[:, [0, 1, 2, 0, 1, 3, 2, 3, 0, 2, 3, 1]].reshape(-1, 4, 3))
-        codes = self._codes(quad_keys(quads))
-        self._ensure_codes(codes)
+        keys = quad_keys(quads)
+        codes = self._codes(keys)
+        self._ensure_codes(codes, keys)
         return self._code_rows(codes).reshape(-1, 4)
 
     def hist(self, triples: Iterable[Triple]) -> np.ndarray:
@@ -332,6 +351,17 @@ def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -
     scaled = epsilon * np.sqrt(epsilon_pixels / np.maximum(pixels, 1.0))
     low, high = THRESHOLD_RANGE
     return np.clip(scaled, low * epsilon, high * epsilon)
+
+
+def gain_threshold(pixels: float, epsilon: float, epsilon_pixels: float) -> float:
+    """:func:`gain_thresholds` of one quad, the same value bit for bit (the same IEEE
+    operations in the same order) without numpy's per-call cost: the search asks it for a
+    few quads at a time."""
+    if epsilon_pixels <= 0:
+        return float(epsilon)
+    scaled = epsilon * math.sqrt(epsilon_pixels / max(pixels, 1.0))
+    low, high = THRESHOLD_RANGE
+    return min(max(scaled, low * epsilon), high * epsilon)
 
 
 def pair_moves(
@@ -477,8 +507,12 @@ def greedy_search(
 
     def margins(quads: list[Quad]) -> tuple[list[float], list[float]]:
         gains, pixels = scorer.quad_deltas(quads)
-        over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
-        return gains.tolist(), over.tolist()
+        if len(quads) > _NUMPY_BATCH:
+            over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
+            return gains.tolist(), over.tolist()
+        listed = gains.tolist()
+        return listed, [g - gain_threshold(n, epsilon, epsilon_pixels)
+                        for g, n in zip(listed, pixels.tolist(), strict=True)]
 
     gains, over = margins([mesh.quad(e) for e in candidates])
     global_hist = cache.hist(current)

@@ -187,6 +187,17 @@ def test_gain_thresholds_follow_the_quad_size_within_bounds():
     assert np.all(gain_thresholds(n, 0.01, 0.0) == 0.01)  # the paper's fixed epsilon
 
 
+def test_one_gain_threshold_is_the_batched_one_bit_for_bit():
+    from pwlreg.core.optimize import gain_threshold, gain_thresholds
+
+    rng = np.random.default_rng(0)
+    pixels = np.concatenate([rng.integers(0, 200_000, 2000), [0, 1, 2, 249, 250, 251]])
+    pixels = pixels.astype(np.float64)
+    for epsilon, epsilon_pixels in ((0.01, 250.0), (0.013, 77.7), (0.01, 0.0)):
+        batched = gain_thresholds(pixels, epsilon, epsilon_pixels).tolist()
+        assert [gain_threshold(p, epsilon, epsilon_pixels) for p in pixels.tolist()] == batched
+
+
 def _pentagon_nmi(images, mesh, triangles):
     idx = np.array(triangles, dtype=np.int64)
     from pwlreg.core.similarity import mutual_information, triangle_statistics
