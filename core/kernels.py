@@ -163,6 +163,30 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
     return tri[:i], ys[:i], x0[:i], length[:i]
 
 
+@njit(cache=True)
+def level_counts(gray, counts):  # type: ignore[no-untyped-def]
+    """Add to ``counts`` the number of pixels of each level of the flat unsigned ``gray``.
+
+    ``np.bincount`` without its conversion to intp; four interleaved counters, so a run of equal
+    levels does not serialize on one memory cell (0.27 against 1.05 ms for 0.8 megapixels).
+    """
+    n = gray.shape[0]
+    size = counts.shape[0]
+    part = np.zeros((4, size), dtype=np.int64)
+    i = 0
+    while i + 4 <= n:
+        part[0, gray[i]] += 1
+        part[1, gray[i + 1]] += 1
+        part[2, gray[i + 2]] += 1
+        part[3, gray[i + 3]] += 1
+        i += 4
+    while i < n:
+        part[0, gray[i]] += 1
+        i += 1
+    for v in range(size):
+        counts[v] += part[0, v] + part[1, v] + part[2, v] + part[3, v]
+
+
 @njit(cache=True, inline="always")
 def _entropy(counts: np.ndarray, n: float) -> float:
     """Entropy in bits of counts summing to ``n``: ``-sum(p log2 p)``, exactly 0 for one cell."""

@@ -177,6 +177,28 @@ def test_summed_information_is_mutual_information_of_the_sums():
     assert mi[0, 0] == nmi[0, 0] == mi[0, 1] == 0.0
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_prepared_bins_and_level_range_are_the_plain_numpy_ones(dtype):
+    # The fast paths (level counts in a kernel, cv2.LUT) change nothing.
+    rng = np.random.default_rng(5)
+    top = np.iinfo(dtype).max
+    ref = np.clip(rng.normal(0.4, 0.15, (97, 131)) * top, 0, top).astype(dtype)
+    mov = np.clip(rng.normal(0.6, 0.1, (90, 120)) * top, 0, top).astype(dtype)
+    for gray in (ref, mov, ref[::2, 1::3]):
+        counts = np.bincount(gray.ravel(), minlength=int(top) + 1)
+        cdf = np.cumsum(counts)
+        lo = int(np.searchsorted(cdf, 5e-4 * cdf[-1], side="right"))
+        hi = int(np.searchsorted(cdf, (1.0 - 5e-4) * cdf[-1], side="left"))
+        assert level_range(gray) == (lo, max(hi, lo))
+    for bins in (16, 64):
+        images = prepare_images(ref, mov, bins)
+        r_lo, r_hi = level_range(ref)
+        levels = np.arange(int(top) + 1, dtype=np.int64)
+        lut = np.clip((levels - r_lo) * bins // (r_hi - r_lo + 1), 0, bins - 1).astype(np.uint8)
+        np.testing.assert_array_equal(images.reference_bins, lut[ref].ravel())
+        assert images.reference_bins.dtype == np.uint8
+
+
 def test_sixteen_bit_and_colour_inputs_bin_consistently():
     ref, mov, pts, mpts = _pair(2)
     tris = Delaunay(pts).simplices
