@@ -11,6 +11,7 @@ with a single triangle is on the boundary.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -276,7 +277,30 @@ class Mesh:
 
     def swappable_edges(self) -> list[Edge]:
         """Internal edges meeting every swap precondition, sorted (batched :meth:`can_swap`)."""
-        return self.swappable(self.internal_edges())
+        return [(i, j) for i, j in self.swappable_quads()[:, :2].tolist()]
+
+    def swappable_quads(
+        self,
+        near: Iterable[int] | None = None,
+        table: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """Quads ``(i, j, k, l)`` of the edges meeting every swap precondition, ``(E, 4)`` int64
+        in the order of :meth:`swappable_edges` and with :meth:`quad`'s ``k, l``.
+
+        ``near`` keeps the edges with an end among these vertices; ``table`` is the
+        :meth:`edge_table`, if the caller has it.
+        """
+        codes, apexes = self.edge_table() if table is None else table
+        n = len(self.reference)
+        quads = np.column_stack([codes // n, codes % n, apexes])[apexes[:, 1] >= 0]
+        if near is not None:
+            ends = np.fromiter(near, dtype=np.int64)
+            quads = quads[np.isin(quads[:, 0], ends) | np.isin(quads[:, 1], ends)]
+        k, l = quads[:, 2], quads[:, 3]  # noqa: E741
+        new = np.minimum(k, l) * n + np.maximum(k, l)
+        at = np.minimum(np.searchsorted(codes, new), max(len(codes) - 1, 0))
+        exists = codes[at] == new if len(codes) else np.zeros(len(quads), dtype=bool)
+        return quads[~exists & self.convex_mask(quads)]
 
     def swappable(self, edges: list[Edge]) -> list[Edge]:
         """Those of the internal ``edges`` that meet every swap precondition, in their order

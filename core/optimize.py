@@ -229,11 +229,15 @@ class TriangleCache:
         self._ensure_codes(codes)
         return self._code_rows(codes).reshape(np.shape(tris)[:-1])
 
-    def quad_rows(self, quads: list[Quad]) -> np.ndarray:
+    def quad_rows(self, quads: list[Quad] | np.ndarray) -> np.ndarray:
         """Rows ``(E, 4)`` of each quad's two current and two swapped triangles (the order of
-        :func:`quad_triples`), computed first where missing."""
-        if len(quads) > _NUMPY_BATCH:
-            ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
+        :func:`quad_triples`), computed first where missing. ``quads`` may be an ``(E, 4)``
+        array of ``(i, j, k, l)``."""
+        if isinstance(quads, np.ndarray) or len(quads) > _NUMPY_BATCH:
+            if isinstance(quads, np.ndarray):
+                ijkl = quads
+            else:
+                ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
             return self.lookup(ijkl[:, [0, 1, 2, 0, 1, 3, 2, 3, 0, 2, 3, 1]].reshape(-1, 4, 3))
         keys = quad_keys(quads)
         codes = self._codes(keys)
@@ -318,9 +322,10 @@ class QuadScorer:
         """Gain of each swap and the number of reference pixels of its quad."""
         return self.quad_deltas([mesh.quad(e) for e in edges])
 
-    def quad_deltas(self, quads: list[Quad]) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`deltas_and_pixels` of the quads themselves (the caller has them already)."""
-        if not quads:
+    def quad_deltas(self, quads: list[Quad] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`deltas_and_pixels` of the quads themselves (the caller has them already),
+        :class:`Quad` objects or an ``(E, 4)`` array of ``(i, j, k, l)``."""
+        if len(quads) == 0:
             return np.zeros(0), np.zeros(0)
         rows = self.cache.quad_rows(quads)
         if self.cost.summed is not None:
@@ -402,12 +407,7 @@ def pair_moves(
         return at, codes[at] == code
 
     if edges is None:
-        quads = np.column_stack([codes // n, codes % n, apexes])[apexes[:, 1] >= 0]
-        if near is not None:
-            ends = np.fromiter(near, dtype=np.int64)
-            quads = quads[np.isin(quads[:, 0], ends) | np.isin(quads[:, 1], ends)]
-        # Mesh.swappable's tests: the new edge is not there, and the quad's geometry.
-        quads = quads[~find(quads[:, 2], quads[:, 3])[1] & mesh.convex_mask(quads)]
+        quads = mesh.swappable_quads(near, (codes, apexes))
     else:
         ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
         at, _ = find(ij[:, 0], ij[:, 1])
@@ -496,7 +496,8 @@ def greedy_search(
     """
     t0 = time.perf_counter()
     current = [_triple(mesh.triangle(s)) for s in mesh.slots()]
-    candidates = mesh.swappable_edges()
+    first = mesh.swappable_quads()
+    candidates = [(i, j) for i, j in first[:, :2].tolist()]
     # Room for every triangle of the first pass and a few swaps' worth of new ones.
     capacity = len(current) + 2 * len(candidates) + 256
     cache = TriangleCache(
@@ -505,7 +506,7 @@ def greedy_search(
     scorer = QuadScorer(cache, cost)
     cache.ensure(current)
 
-    def margins(quads: list[Quad]) -> tuple[list[float], list[float]]:
+    def margins(quads: list[Quad] | np.ndarray) -> tuple[list[float], list[float]]:
         gains, pixels = scorer.quad_deltas(quads)
         if len(quads) > _NUMPY_BATCH:
             over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
@@ -514,7 +515,7 @@ def greedy_search(
         return listed, [g - gain_threshold(n, epsilon, epsilon_pixels)
                         for g, n in zip(listed, pixels.tolist(), strict=True)]
 
-    gains, over = margins([mesh.quad(e) for e in candidates])
+    gains, over = margins(first)
     global_hist = cache.hist(current)
     mi, nmi = (float(v) for v in mutual_information(global_hist, images.bins))
     result = SearchResult(initial_mi=mi, initial_nmi=nmi, evaluations=len(candidates))
