@@ -11,7 +11,7 @@ from __future__ import annotations
 import heapq
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Collection, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -372,7 +372,7 @@ def gain_threshold(pixels: float, epsilon: float, epsilon_pixels: float) -> floa
 def pair_moves(
     mesh: Mesh,
     edges: list[Edge] | None,
-    allowed: Callable[[Edge], bool],
+    retired: Collection[Edge],
     near: Iterable[int] | None = None,
 ) -> np.ndarray:
     """Every valid pair of swaps starting with one of ``edges`` (each already swappable).
@@ -384,8 +384,8 @@ def pair_moves(
     ``(k, l, j)``; a second swap then turns one of the quad's sides ``b = (p, r)`` (``p`` in
     ``{i, j}``, ``r`` in ``{k, l}``) over the outer triangle ``(p, r, m)`` into ``(r', m)``,
     ``r'`` the other of ``k, l``. Both swaps must meet the preconditions of
-    :meth:`Mesh.swap_blocker` on the mesh they apply to, and ``allowed`` must accept the
-    edge each creates.
+    :meth:`Mesh.swap_blocker` on the mesh they apply to, and neither may create an edge of
+    ``retired`` (``(i, j)`` with ``i < j``).
 
     Returns
     -------
@@ -396,7 +396,7 @@ def pair_moves(
     """
     if edges is not None and not edges:
         return np.zeros((0, 9), dtype=np.int64)
-    # Vectorized over every edge and side; ``allowed`` alone is asked one edge at a time.
+    # Vectorized over every edge and side, the retired edges as codes.
     codes, apexes = mesh.edge_table()
     n = len(mesh.reference)
 
@@ -412,8 +412,12 @@ def pair_moves(
         ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
         at, _ = find(ij[:, 0], ij[:, 1])
         quads = np.column_stack([ij, apexes[at]])  # (i, j, k, l) as Mesh.quad gives them
-    keep = [allowed((a, b)) for a, b in quads[:, 2:].tolist()]
-    i, j, k, l = quads[np.array(keep, dtype=bool)].T  # noqa: E741
+    banned = np.array([i * n + j for i, j in retired], dtype=np.int64)
+
+    def allowed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return ~np.isin(np.minimum(a, b) * n + np.maximum(a, b), banned)
+
+    i, j, k, l = quads[allowed(quads[:, 2], quads[:, 3])].T  # noqa: E741
     # The four second swaps of each, in the order p in (i, j), then r in (k, l).
     p, p2 = np.stack([i, i, j, j], axis=1), np.stack([j, j, i, i], axis=1)
     r, r2 = np.stack([k, l, k, l], axis=1), np.stack([l, k, l, k], axis=1)
@@ -442,9 +446,7 @@ def pair_moves(
     # ... in both images, and its new triangles turn the same way in both (no reversal).
     ok &= (turns[0][0] == turns[1][0]) & (turns[0][1] == turns[1][1])
     pairs = pairs[ok]
-    # Last, on the fewest rows: the caller's rule on the second swap's new edge.
-    return pairs[np.array([allowed((a, b)) for a, b in pairs[:, [8, 4]].tolist()], dtype=bool)
-                 .reshape(-1)]
+    return pairs[allowed(pairs[:, 8], pairs[:, 4])]  # the second swap's new edge (r', m)
 
 
 def greedy_search(
@@ -575,11 +577,10 @@ def greedy_search(
         """One pass of pair moves; True if any was taken. After the first pass over the whole
         mesh, only edges touching a quad changed since the previous pass are tried again."""
         nonlocal moved
-        pairs = pair_moves(mesh, None, lambda e: edge_key(*e) not in retired, near=moved)
+        pairs = pair_moves(mesh, None, retired, near=moved)
         moved = set()
         if len(pairs) == 0:
             return False
-        listed = pairs.tolist()
         rows = cache.lookup(pairs[:, pair_triangles]).reshape(-1, 2, 3)  # before/after
         bins = cache.bins
         if scorer.cost.summed is not None:
@@ -604,7 +605,7 @@ def greedy_search(
         for n in np.argsort(-over_t, kind="stable"):
             if over_t[n] <= 0.0 or len(taken) + 2 > max_iterations:
                 break
-            i, j, k, ll, m_, p, r, _, r2 = listed[n]
+            i, j, k, ll, m_, p, r, _, r2 = pairs[n].tolist()
             if touched & {i, j, k, ll, m_}:
                 continue  # scored on a mesh that has changed around it since
             e, b = edge_key(i, j), edge_key(p, r)
