@@ -147,9 +147,10 @@ class TriangleCache:
         self._n = len(mesh.reference)
         self._numpy_codes = self._n**3 < 2**62  # else int64 would overflow: Python ints
         self._rows: dict[int, int] = {}
-        # int32: a triangle's counts fit, and half the memory traffic of every gather.
-        self._hist = np.zeros((capacity, self.bins * self.bins), dtype=np.int32)
-        self._moments = np.zeros((capacity if with_moments else 0, 6), dtype=np.float64)
+        # int32: a triangle's counts fit, and half the memory traffic of every gather. Rows are
+        # zeroed when first used (allocating zeros, then copying on growth, costs more).
+        self._hist = np.empty((capacity, self.bins * self.bins), dtype=np.int32)
+        self._moments = np.empty((capacity if with_moments else 0, 6), dtype=np.float64)
 
     def __len__(self) -> int:
         return len(self._rows)
@@ -194,18 +195,23 @@ class TriangleCache:
         need = start + len(missing)
         if need > len(self._hist):
             grow = max(need, 2 * len(self._hist))
-            grown = np.zeros((grow, self._hist.shape[1]), dtype=np.int32)
+            grown = np.empty((grow, self._hist.shape[1]), dtype=np.int32)
             grown[:start] = self._hist[:start]
             self._hist = grown
             if self.with_moments:
-                grown_m = np.zeros((grow, 6))
+                grown_m = np.empty((grow, 6))
                 grown_m[:start] = self._moments[:start]
                 self._moments = grown_m
-        # Counted straight into the cache's rows (zero, never used yet): no copy.
+        # Counted straight into the cache's rows: no copy.
+        hist_out = self._hist[start:need]
+        hist_out[...] = 0
+        moments_out = None
+        if self.with_moments:
+            moments_out = self._moments[start:need]
+            moments_out[...] = 0.0
         triangle_statistics(
             self.images, self.reference[idx], self.moving[idx], self.with_moments,
-            hist_out=self._hist[start:need],
-            moments_out=self._moments[start:need] if self.with_moments else None,
+            hist_out=hist_out, moments_out=moments_out,
         )
         known.update(zip(missing, range(start, need), strict=True))
 
@@ -222,12 +228,15 @@ class TriangleCache:
         statistics computed first where missing. Shape ``(...)``."""
         s = np.sort(np.asarray(tris, dtype=np.int64).reshape(-1, 3), axis=1)
         n = self._n
-        if self._numpy_codes:
-            codes = ((s[:, 0] * n + s[:, 1]) * n + s[:, 2]).tolist()
-        else:
+        if not self._numpy_codes:
             codes = self._codes(s.tolist())
+            self._ensure_codes(codes)
+            return self._code_rows(codes).reshape(np.shape(tris)[:-1])
+        # Each distinct triangle once through the dict (a batch repeats many).
+        unique, inverse = np.unique((s[:, 0] * n + s[:, 1]) * n + s[:, 2], return_inverse=True)
+        codes = unique.tolist()
         self._ensure_codes(codes)
-        return self._code_rows(codes).reshape(np.shape(tris)[:-1])
+        return self._code_rows(codes)[inverse].reshape(np.shape(tris)[:-1])
 
     def quad_rows(self, quads: list[Quad] | np.ndarray) -> np.ndarray:
         """Rows ``(E, 4)`` of each quad's two current and two swapped triangles (the order of
