@@ -250,6 +250,8 @@ def summed_information(hist, rows, bins, mi, nmi, pixels):  # type: ignore[no-un
     pa = np.empty(bins)
     pb = np.empty(bins)
     counts = np.empty(nb, dtype=np.int64)
+    ca = np.empty(bins, dtype=np.int64)
+    cb = np.empty(bins, dtype=np.int64)
     row = np.empty(nb)
     for k in range(rows.shape[0]):
         counts[:] = 0
@@ -257,9 +259,36 @@ def summed_information(hist, rows, bins, mi, nmi, pixels):  # type: ignore[no-un
             src = hist[rows[k, s]]
             for c in range(nb):
                 counts[c] += src[c]
+        # The total and the marginals summed as integers: exact, so equal to the float sums of
+        # _row_information (integers below 2**53), without their chain of float additions.
+        ca[:] = 0
+        cb[:] = 0
+        for a in range(bins):
+            for b in range(bins):
+                c = counts[a * bins + b]
+                ca[a] += c
+                cb[b] += c
+        total = 0
+        for a in range(bins):
+            total += ca[a]
+            pa[a] = float(ca[a])
+            pb[a] = float(cb[a])
+        n = float(total)
+        pixels[k] = n
+        mi[k] = 0.0
+        nmi[k] = 0.0
+        if total == 0:
+            continue
         for c in range(nb):
             row[c] = float(counts[c])
-        mi[k], nmi[k], pixels[k] = _row_information(row, pa, pb, bins)
+        h_ab = _entropy(row, n)
+        if h_ab <= 1e-12:
+            continue
+        h_a = _entropy(pa, n)
+        h_b = _entropy(pb, n)
+        value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
+        mi[k] = value
+        nmi[k] = value / h_ab
 
 
 @njit(cache=True)
