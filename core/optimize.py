@@ -671,7 +671,8 @@ def greedy_search(
         for n, ((e, added, delta, move, elapsed), mi_n, nmi_n) in enumerate(
             zip(taken, step_mi.tolist(), step_nmi.tolist(), strict=True)
         ):
-            result.steps.append(SwapStep(n + 1, e, added, delta, mi_n, nmi_n, elapsed, move))
+            result.steps.append(SwapStep(iteration=n + 1, removed=e, added=added, delta=delta,
+                                         mi=mi_n, nmi=nmi_n, elapsed_s=elapsed, move=move))
     result.final_mi, result.final_nmi = (
         float(v) for v in mutual_information(global_hist, images.bins))
     result.stopped_because = stopped
