@@ -164,6 +164,24 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
 
 
 @njit(cache=True)
+def fill_spans(tri, ys, x0, length, maps, map_x, map_y, label):  # type: ignore[no-untyped-def]
+    """Write each run's triangle into ``label`` and, when ``maps`` (T, 2, 3) has rows, the
+    triangle's affine map of every pixel into ``map_x``/``map_y`` (``m x + m y + m``, the
+    expression of :func:`core.warp.piecewise_map`)."""
+    with_maps = maps.shape[0] > 0
+    for i in range(tri.shape[0]):
+        t = tri[i]
+        y = ys[i]
+        yf = float(y)
+        for x in range(x0[i], x0[i] + length[i]):
+            label[y, x] = t
+            if with_maps:
+                xf = float(x)
+                map_x[y, x] = maps[t, 0, 0] * xf + maps[t, 0, 1] * yf + maps[t, 0, 2]
+                map_y[y, x] = maps[t, 1, 0] * xf + maps[t, 1, 1] * yf + maps[t, 1, 2]
+
+
+@njit(cache=True)
 def level_counts(gray, counts):  # type: ignore[no-untyped-def]
     """Add to ``counts`` the number of pixels of each level of the flat unsigned ``gray``.
 

@@ -130,8 +130,9 @@ def label_image(tri_xy: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``(H, W)`` int32 image of the index of the triangle owning each pixel, -1 for none."""
     spans = rasterize(tri_xy, shape)
     labels = np.full(shape, -1, dtype=np.int32)
-    span_index, x, y = expand(spans)
-    labels[y, x] = spans.triangle[span_index]
+    none = np.empty((0, 0))
+    kernels.fill_spans(spans.triangle, spans.y, spans.x0, spans.length, np.empty((0, 2, 3)),
+                       none, none, labels)
     return labels
 
 

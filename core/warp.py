@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from pwlreg.core import kernels
-from pwlreg.core.raster import affine_maps, expand, rasterize
+from pwlreg.core.raster import affine_maps, rasterize
 
 
 def piecewise_map(
@@ -41,17 +41,10 @@ def piecewise_map(
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     maps = affine_maps(ref[tris], mov[tris])
     spans = rasterize(ref[tris], shape)
-    span_index, x, y = expand(spans)
-    tri = spans.triangle[span_index]
     map_x = np.full(shape, np.nan)
     map_y = np.full(shape, np.nan)
     label = np.full(shape, -1, dtype=np.int32)
-    xf = x.astype(np.float64)
-    yf = y.astype(np.float64)
-    m = maps[tri]
-    map_x[y, x] = m[:, 0, 0] * xf + m[:, 0, 1] * yf + m[:, 0, 2]
-    map_y[y, x] = m[:, 1, 0] * xf + m[:, 1, 1] * yf + m[:, 1, 2]
-    label[y, x] = tri
+    kernels.fill_spans(spans.triangle, spans.y, spans.x0, spans.length, maps, map_x, map_y, label)
     return map_x, map_y, label
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from pwlreg.core.raster import quantize
+from pwlreg.core.raster import affine_maps, expand, label_image, quantize, rasterize
 from pwlreg.core.warp import piecewise_map, warp_image
 from tests.core.synthetic import texture
 
@@ -82,3 +82,22 @@ def test_rendered_region_is_the_closed_mesh_outline():
     grid = np.c_[xs.ravel(), ys.ravel(), np.ones(xs.size)]
     inside_or_on = (grid @ ConvexHull(pts).equations.T <= 1e-9).all(axis=1).reshape(shape)
     np.testing.assert_array_equal(out[..., 1] > 0, inside_or_on)
+
+
+def test_piecewise_map_kernel_equals_the_per_pixel_expression():
+    # The span-filling kernel must give the numpy expression's values bit for bit (no fused
+    # multiply-add), and every pixel of the label image the owner the spans give it.
+    shape = (150, 210)
+    ref, mov, tris = _mesh(shape, seed=4, n=60, jitter=5.0)
+    map_x, map_y, label = piecewise_map(ref, mov, tris, shape)
+    spans = rasterize(ref[tris], shape)
+    run, x, y = expand(spans)
+    m = affine_maps(ref[tris], mov[tris])[spans.triangle[run]]
+    xf, yf = x.astype(np.float64), y.astype(np.float64)
+    np.testing.assert_array_equal(map_x[y, x], m[:, 0, 0] * xf + m[:, 0, 1] * yf + m[:, 0, 2])
+    np.testing.assert_array_equal(map_y[y, x], m[:, 1, 0] * xf + m[:, 1, 1] * yf + m[:, 1, 2])
+    np.testing.assert_array_equal(label[y, x], spans.triangle[run])
+    np.testing.assert_array_equal(label, label_image(ref[tris], shape))
+    outside = np.ones(shape, bool)
+    outside[y, x] = False
+    assert (label[outside] == -1).all() and np.isnan(map_x[outside]).all()
