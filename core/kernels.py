@@ -13,13 +13,20 @@ The fill rule lives in :func:`row_span` alone; every kernel calls it.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 SUBPIXEL = 256
 
 # Safety margin (pixels) of the clamp-free sampling path against rounding in the row stepping.
 _MARGIN = 1e-6
+
+
+def set_threads(n: int) -> None:
+    """Use at most ``n`` threads (and at most numba's ``NUMBA_NUM_THREADS``) in the threaded
+    kernels of this process."""
+    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
 
 
 @njit(cache=True, inline="always")
@@ -309,6 +316,114 @@ def summed_information(hist, rows, bins, mi, nmi, pixels):  # type: ignore[no-un
         nmi[k] = value / h_ab
 
 
+@njit(cache=True, inline="always")
+def _triangle_histogram(  # type: ignore[no-untyped-def]
+    t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins, bin_offset,
+    bin_scale, ref_scale, mov_scale, hist, moments, with_moments, mov_tris
+):
+    """Histogram (and moments) of triangle ``t`` into ``hist[t]`` (``moments[t]``): the body of
+    :func:`triangle_histograms`."""
+    xmax = mw - 1.0
+    ymax = mh - 1.0
+    q = np.empty((3, 2), dtype=np.int64)
+    m = np.empty((2, 3))
+    if _load_triangle(ref_tris[t], q) == 0:
+        return
+    _affine(ref_tris[t], mov_tris[t], m)
+    h_t = hist[t]
+    # The steps and the moment sums in locals, not re-read from the arrays: every histogram
+    # increment is a store the compiler cannot prove apart from them (-20 % time).
+    m00 = m[0, 0]
+    m10 = m[1, 0]
+    if with_moments:
+        s0, s1, s2, s3, s4, s5 = (moments[t, 0], moments[t, 1], moments[t, 2],
+                                  moments[t, 3], moments[t, 4], moments[t, 5])
+    else:
+        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+    y0, y1 = _row_range(q, height)
+    for y in range(y0, y1 + 1):
+        lo, hi = row_span(q, y, width)
+        row = y * width
+        # The map is affine: step along the row instead of re-evaluating it.
+        mx = m00 * lo + m[0, 1] * y + m[0, 2]
+        my = m10 * lo + m[1, 1] * y + m[1, 2]
+        if hi < lo:
+            continue
+        ex = mx + m00 * (hi - lo)
+        ey = my + m10 * (hi - lo)
+        if not with_moments and (
+            min(mx, ex) >= _MARGIN
+            and min(my, ey) >= _MARGIN
+            and max(mx, ex) <= xmax - _MARGIN
+            and max(my, ey) <= ymax - _MARGIN
+        ):
+            # The whole run samples strictly inside the image: no clamping needed (the
+            # common case; the general loop below gives the same values). Every index is
+            # then non-negative: unsigned, numba drops its negative-index wraparound (-16 %).
+            umw = np.uint64(mw)
+            one = np.uint64(1)
+            ubins = np.uint64(bins)
+            for x in range(lo, hi + 1):
+                xi = int(mx)
+                yi = int(my)
+                fx = mx - xi
+                fy = my - yi
+                i00 = np.uint64(yi * mw + xi)
+                p00 = float(flat[i00])
+                p10 = float(flat[i00 + umw])
+                top = p00 + fx * (flat[i00 + one] - p00)
+                bottom = p10 + fx * (flat[i00 + umw + one] - p10)
+                b = int((top + fy * (bottom - top) - bin_offset) * bin_scale)
+                if b >= bins:
+                    b = bins - 1
+                elif b < 0:
+                    b = 0
+                h_t[np.uint64(ref_bins[np.uint64(row + x)]) * ubins + np.uint64(b)] += 1
+                mx += m00
+                my += m10
+            continue
+        for x in range(lo, hi + 1):
+            sx = min(max(mx, 0.0), xmax)
+            sy = min(max(my, 0.0), ymax)
+            xi = int(sx)
+            yi = int(sy)
+            fx = sx - xi
+            fy = sy - yi
+            i00 = yi * mw + xi
+            i01 = i00 + 1 if xi < mw - 1 else i00
+            i10 = i00 + mw if yi < mh - 1 else i00
+            i11 = i10 + 1 if xi < mw - 1 else i10
+            p00 = float(flat[i00])
+            p10 = float(flat[i10])
+            top = p00 + fx * (flat[i01] - p00)
+            bottom = p10 + fx * (flat[i11] - p10)
+            v = top + fy * (bottom - top)
+            b = int((v - bin_offset) * bin_scale)
+            if b >= bins:
+                b = bins - 1
+            elif b < 0:
+                b = 0
+            h_t[ref_bins[row + x] * bins + b] += 1
+            if with_moments:
+                a = ref_values[row + x] * ref_scale
+                v *= mov_scale
+                s0 += 1.0
+                s1 += a
+                s2 += v
+                s3 += a * a
+                s4 += v * v
+                s5 += a * v
+            mx += m00
+            my += m10
+    if with_moments:
+        moments[t, 0] = s0
+        moments[t, 1] = s1
+        moments[t, 2] = s2
+        moments[t, 3] = s3
+        moments[t, 4] = s4
+        moments[t, 5] = s5
+
+
 @njit(cache=True)
 def triangle_histograms(  # type: ignore[no-untyped-def]
     ref_tris,
@@ -334,109 +449,41 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
     ``(T, bins * bins)`` int32 or int64, ``moments`` ``(T, 6)`` or ``(0, 6)`` float64, of
     levels times ``ref_scale`` / ``mov_scale``. Resampling: bilinear, border replicated.
     """
-    q = np.empty((3, 2), dtype=np.int64)
-    m = np.empty((2, 3))
     with_moments = moments.shape[0] > 0
     mh, mw = moving.shape
     flat = moving.ravel()
-    xmax = mw - 1.0
-    ymax = mh - 1.0
     for t in range(ref_tris.shape[0]):
-        if _load_triangle(ref_tris[t], q) == 0:
-            continue
-        _affine(ref_tris[t], mov_tris[t], m)
-        h_t = hist[t]
-        # The steps and the moment sums in locals, not re-read from the arrays: every histogram
-        # increment is a store the compiler cannot prove apart from them (-20 % time).
-        m00 = m[0, 0]
-        m10 = m[1, 0]
-        if with_moments:
-            s0, s1, s2, s3, s4, s5 = (moments[t, 0], moments[t, 1], moments[t, 2],
-                                      moments[t, 3], moments[t, 4], moments[t, 5])
-        else:
-            s0 = s1 = s2 = s3 = s4 = s5 = 0.0
-        y0, y1 = _row_range(q, height)
-        for y in range(y0, y1 + 1):
-            lo, hi = row_span(q, y, width)
-            row = y * width
-            # The map is affine: step along the row instead of re-evaluating it.
-            mx = m00 * lo + m[0, 1] * y + m[0, 2]
-            my = m10 * lo + m[1, 1] * y + m[1, 2]
-            if hi < lo:
-                continue
-            ex = mx + m00 * (hi - lo)
-            ey = my + m10 * (hi - lo)
-            if not with_moments and (
-                min(mx, ex) >= _MARGIN
-                and min(my, ey) >= _MARGIN
-                and max(mx, ex) <= xmax - _MARGIN
-                and max(my, ey) <= ymax - _MARGIN
-            ):
-                # The whole run samples strictly inside the image: no clamping needed (the
-                # common case; the general loop below gives the same values). Every index is
-                # then non-negative: unsigned, numba drops its negative-index wraparound (-16 %).
-                umw = np.uint64(mw)
-                one = np.uint64(1)
-                ubins = np.uint64(bins)
-                for x in range(lo, hi + 1):
-                    xi = int(mx)
-                    yi = int(my)
-                    fx = mx - xi
-                    fy = my - yi
-                    i00 = np.uint64(yi * mw + xi)
-                    p00 = float(flat[i00])
-                    p10 = float(flat[i00 + umw])
-                    top = p00 + fx * (flat[i00 + one] - p00)
-                    bottom = p10 + fx * (flat[i00 + umw + one] - p10)
-                    b = int((top + fy * (bottom - top) - bin_offset) * bin_scale)
-                    if b >= bins:
-                        b = bins - 1
-                    elif b < 0:
-                        b = 0
-                    h_t[np.uint64(ref_bins[np.uint64(row + x)]) * ubins + np.uint64(b)] += 1
-                    mx += m00
-                    my += m10
-                continue
-            for x in range(lo, hi + 1):
-                sx = min(max(mx, 0.0), xmax)
-                sy = min(max(my, 0.0), ymax)
-                xi = int(sx)
-                yi = int(sy)
-                fx = sx - xi
-                fy = sy - yi
-                i00 = yi * mw + xi
-                i01 = i00 + 1 if xi < mw - 1 else i00
-                i10 = i00 + mw if yi < mh - 1 else i00
-                i11 = i10 + 1 if xi < mw - 1 else i10
-                p00 = float(flat[i00])
-                p10 = float(flat[i10])
-                top = p00 + fx * (flat[i01] - p00)
-                bottom = p10 + fx * (flat[i11] - p10)
-                v = top + fy * (bottom - top)
-                b = int((v - bin_offset) * bin_scale)
-                if b >= bins:
-                    b = bins - 1
-                elif b < 0:
-                    b = 0
-                h_t[ref_bins[row + x] * bins + b] += 1
-                if with_moments:
-                    a = ref_values[row + x] * ref_scale
-                    v *= mov_scale
-                    s0 += 1.0
-                    s1 += a
-                    s2 += v
-                    s3 += a * a
-                    s4 += v * v
-                    s5 += a * v
-                mx += m00
-                my += m10
-        if with_moments:
-            moments[t, 0] = s0
-            moments[t, 1] = s1
-            moments[t, 2] = s2
-            moments[t, 3] = s3
-            moments[t, 4] = s4
-            moments[t, 5] = s5
+        _triangle_histogram(t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
+                            bin_offset, bin_scale, ref_scale, mov_scale, hist, moments,
+                            with_moments, mov_tris)
+
+
+@njit(cache=True, parallel=True)
+def triangle_histograms_parallel(  # type: ignore[no-untyped-def]
+    ref_tris,
+    mov_tris,
+    ref_bins,
+    ref_values,
+    moving,
+    width,
+    height,
+    bins,
+    bin_offset,
+    bin_scale,
+    ref_scale,
+    mov_scale,
+    hist,
+    moments,
+):
+    """:func:`triangle_histograms` with the triangles shared among threads (each writes only
+    its own rows, so the result is the same)."""
+    with_moments = moments.shape[0] > 0
+    mh, mw = moving.shape
+    flat = moving.ravel()
+    for t in prange(ref_tris.shape[0]):
+        _triangle_histogram(t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
+                            bin_offset, bin_scale, ref_scale, mov_scale, hist, moments,
+                            with_moments, mov_tris)
 
 
 @njit(cache=True)

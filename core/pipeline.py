@@ -348,7 +348,9 @@ def warm_up() -> None:
     compilation (seconds the first time on a machine, a fraction of a second from the cache).
     """
     levels = np.arange(64 * 64, dtype=np.int64).reshape(64, 64) * 37 % 251
-    pts = np.array([[2.0, 2.0], [60.0, 3.0], [4.0, 61.0], [58.0, 57.0], [30.0, 31.0]])
+    # Enough points that the first batch of triangles takes the threaded kernel too.
+    grid = np.linspace(2.0, 61.0, 8)
+    pts = np.array([(x + (y % 3), y) for x in grid for y in grid])
     for dtype in (np.uint8, np.uint16):
         grey = levels.astype(dtype)
         for img in (grey, np.dstack([grey] * 3)):

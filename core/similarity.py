@@ -19,6 +19,11 @@ import numpy as np
 from pwlreg.core import kernels
 from pwlreg.core.imaging import max_value, to_gray
 
+#: Batches of at least this many triangles are shared among numba's threads (its
+#: ``NUMBA_NUM_THREADS``; the service's workers set it to their ``worker_threads``); the few
+#: triangles a swap rescores are not worth a thread launch.
+PARALLEL_TRIANGLES = 64
+
 MOMENTS = ("n", "sum_a", "sum_b", "sum_aa", "sum_bb", "sum_ab")
 """Order of the per-triangle moments (a: reference grey level, b: resampled moving level)."""
 
@@ -184,7 +189,9 @@ def triangle_statistics(
     else:
         moments = moments_out
     if n_tri:
-        kernels.triangle_histograms(
+        kernel = (kernels.triangle_histograms_parallel if n_tri >= PARALLEL_TRIANGLES
+                  else kernels.triangle_histograms)
+        kernel(
             ref_tri,
             mov_tri,
             images.reference_bins,

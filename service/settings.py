@@ -54,7 +54,7 @@ class Settings(BaseSettings):
         1,
         ge=1,
         le=256,
-        description="Threads each worker process gives to its numerical libraries (OpenCV, "
+        description="Threads each worker process gives to its numerical libraries (OpenCV, numba, "
         "BLAS, OpenMP). Keep workers x worker_threads at most the number of cores.",
     )
     max_upload_bytes: int = Field(

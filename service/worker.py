@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
+from pwlreg.core import kernels
 from pwlreg.core.errors import InputError, NotEnoughPointsError, UnreliableResultError
 from pwlreg.core.formats.geotiff import RasterFile, open_image
 from pwlreg.core.io import load_points
@@ -437,6 +438,7 @@ def init_process(
     global _PROCESS_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(settings.worker_threads)  # processes, not threads, share the cores
+    kernels.set_threads(settings.worker_threads)
     configure_logging(log_level, settings.log_format)
     _PROCESS_CONTEXT = WorkerContext.from_settings(settings, stop_event=stop_event)
     try:

@@ -209,3 +209,21 @@ def test_sixteen_bit_and_colour_inputs_bin_consistently():
     mi8 = mutual_information(h8.sum(0), 16)[0]
     mi16 = mutual_information(h16.sum(0), 16)[0]
     assert mi16 == pytest.approx(mi8, abs=0.02)
+
+
+def test_threaded_kernel_gives_the_serial_histograms_and_moments(monkeypatch):
+    from pwlreg.core import similarity
+
+    rng = np.random.default_rng(5)
+    shape = (120, 160)
+    images = prepare_images(texture(shape, 2), texture(shape, 3), 16)
+    pts = quantize(np.vstack([rng.uniform(0, [159, 119], (90, 2)),
+                              [[0, 0], [159, 0], [0, 119], [159, 119]]]))
+    tris = Delaunay(pts).simplices
+    assert len(tris) >= similarity.PARALLEL_TRIANGLES
+    mov = quantize(pts + rng.normal(0, 2, pts.shape))
+    threaded = triangle_statistics(images, pts[tris], mov[tris], with_moments=True)
+    monkeypatch.setattr(similarity, "PARALLEL_TRIANGLES", len(tris) + 1)
+    serial = triangle_statistics(images, pts[tris], mov[tris], with_moments=True)
+    np.testing.assert_array_equal(threaded[0], serial[0])
+    np.testing.assert_array_equal(threaded[1], serial[1])
