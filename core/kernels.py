@@ -549,7 +549,7 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
                         out[y, x, colour] = full
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def line_correlation(target, patch, offsets, start, step, normal, linear, lengths, bands,
                      out):  # type: ignore[no-untyped-def]
     """Zero-mean normalized correlation of patches along lines (:func:`core.refine`).
@@ -557,11 +557,12 @@ def line_correlation(target, patch, offsets, start, step, normal, linear, length
     For candidate ``i``, position ``s < lengths[i]`` and band ``b``, the target is sampled
     (bilinear) at ``start[i] + s * step[i] + bands[b] * normal[i] + linear[i] @ offsets[p]``
     and correlated with ``patch[i]`` (zero-mean); ``out[i, s, b]`` gets the correlation, -1
-    where a sample falls outside the target or either side is flat.
+    where a sample falls outside the target or either side is flat. Candidates are shared
+    among numba's threads (each writes its own rows).
     """
     h, w = target.shape
     n_off = offsets.shape[0]
-    for i in range(start.shape[0]):
+    for i in prange(start.shape[0]):
         pm = 0.0
         for p in range(n_off):
             pm += patch[i, p]
