@@ -116,8 +116,11 @@ MOVES: dict[str, Move] = {
 }
 """Move name -> :class:`Move`; insertion sources run in this order."""
 
-#: Origins of mesh vertices that no move made.
-ORIGINS = ("client", "matched", "frame")
+def inserted_mask(origins: list[str]) -> np.ndarray:
+    """Per vertex, whether an insertion move of :data:`MOVES` found it (``origins`` as
+    :attr:`core.pipeline.RegistrationResult.origins`)."""
+    return np.array([MOVES.get(o) is not None and MOVES[o].kind == "insertion"
+                     for o in origins], bool)
 
 
 def insertions() -> list[tuple[str, Move]]:
@@ -128,7 +131,8 @@ def insertions() -> list[tuple[str, Move]]:
 def move_counts(origins: list[str], steps: list) -> list[dict]:
     """Per move of :data:`MOVES` that was made: its name, kind, count and reason.
 
-    ``origins`` are the mesh vertices' origins (a move's name or one of :data:`ORIGINS`),
+    ``origins`` are the mesh vertices' origins (a move's name, or ``client``, ``matched``,
+    ``frame``),
     ``steps`` the optimizer's accepted steps (each with a ``move`` name).
     """
     made = [*origins, *(s.move for s in steps)]

@@ -16,7 +16,7 @@ from pwlreg.core.extent import frame_vertices
 from pwlreg.core.imaging import matching_image, to_gray8
 from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
-from pwlreg.core.moves import MOVES, Search, insertions
+from pwlreg.core.moves import Search, inserted_mask, insertions
 from pwlreg.core.optimize import SearchResult
 from pwlreg.core.optimizers import OPTIMIZERS
 from pwlreg.core.options import RegistrationOptions
@@ -100,7 +100,7 @@ class RegistrationResult:
     @property
     def inserted(self) -> np.ndarray:
         """Per vertex, whether an insertion move of :data:`core.moves.MOVES` found it."""
-        return np.array([o in MOVES for o in self.origins], bool)
+        return inserted_mask(self.origins)
 
     @property
     def extrapolated(self) -> np.ndarray:
@@ -277,7 +277,6 @@ def register(
     _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)
     origins = [origin[i] for i in nearest]
     origins = ["frame" if e else o for o, e in zip(origins, tri_report.extrapolated, strict=True)]
-    inserted = np.array([o in MOVES for o in origins], bool)
     initial_triangles = mesh.triangles
     timings["triangulation_s"] = time.perf_counter() - t
     report("triangulating", 1.0)
@@ -307,7 +306,8 @@ def register(
         # The verdict's rules were calibrated with the matched pairs' hull as the measured
         # area: vertices inserted beyond it extend the extrapolated border, not the evidence
         # (counted as measured, a border 26 px wrong was called good).
-        tri_report.extrapolated | (inserted & ~in_hull(conjugate.reference, mesh.reference)),
+        tri_report.extrapolated
+        | (inserted_mask(origins) & ~in_hull(conjugate.reference, mesh.reference)),
         counts=conjugate.counts,
         rejected=conjugate.rejected,
         mi=(search.initial_mi, search.final_mi),

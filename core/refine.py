@@ -243,14 +243,36 @@ def guided_pairs(
     moving = _from_level(moving, scale)
     size = np.hypot(*residual.T) / scale  # pixels of the reference
 
-    large = mapped & (size > SMALL_PX)
+    return _chosen(images, ref_v, mov_v, tris, reference, moving, size, mapped, counts,
+                   budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
+
+
+def _chosen(
+    images: ScoringImages,
+    ref_v: np.ndarray,
+    mov_v: np.ndarray,
+    tris: np.ndarray,
+    reference: np.ndarray,
+    moving: np.ndarray,
+    size: np.ndarray,
+    ok: np.ndarray,
+    counts: dict[str, int],
+    *,
+    budget: int,
+    epsilon: float,
+    epsilon_pixels: float,
+) -> Insertion:
+    """The last step of both sources: the candidate pairs ``ok`` whose correction ``size``
+    exceeds :data:`SMALL_PX` must raise the mutual information of the triangle they split;
+    then the ``budget`` largest corrections are kept (``counts`` updated)."""
+    ok = ok.copy()
+    large = ok & (size > SMALL_PX)
     if large.any():
         confirmed = _raises_mi(images, ref_v, mov_v, tris, reference[large], moving[large],
                                epsilon=epsilon, epsilon_pixels=epsilon_pixels)
         counts["rejected by mi"] = int((~confirmed).sum())
-        mapped[np.flatnonzero(large)[~confirmed]] = False
-    order = np.argsort(size[mapped])[::-1]  # largest corrections first
-    chosen = np.flatnonzero(mapped)[order][:budget]
+        ok[np.flatnonzero(large)[~confirmed]] = False
+    chosen = np.flatnonzero(ok)[np.argsort(size[ok])[::-1]][:budget]  # largest first
     counts["inserted"] = len(chosen)
     return Insertion(reference[chosen], moving[chosen], counts)
 
@@ -475,15 +497,8 @@ def epipolar_pairs(
     ok[idx[contradicted]] = False
     counts["neighbours"] = int(ok.sum())
     size = np.hypot(*(best_xy - predicted).T) / scale
-    large = ok & (size > SMALL_PX)
-    if large.any():
-        confirmed = _raises_mi(images, ref_v, mov_v, tris, reference[large], moving[large],
-                               epsilon=epsilon, epsilon_pixels=epsilon_pixels)
-        counts["rejected by mi"] = int((~confirmed).sum())
-        ok[np.flatnonzero(large)[~confirmed]] = False
-    chosen = np.flatnonzero(ok)[np.argsort(size[ok])[::-1]][:budget]
-    counts["inserted"] = len(chosen)
-    return Insertion(reference[chosen], moving[chosen], counts)
+    return _chosen(images, ref_v, mov_v, tris, reference, moving, size, ok, counts,
+                   budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
 
 
 def _lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
