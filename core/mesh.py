@@ -302,23 +302,6 @@ class Mesh:
         exists = codes[at] == new if len(codes) else np.zeros(len(quads), dtype=bool)
         return quads[~exists & self.convex_mask(quads)]
 
-    def swappable(self, edges: list[Edge]) -> list[Edge]:
-        """Those of the internal ``edges`` that meet every swap precondition, in their order
-        (:meth:`can_swap` in one batch)."""
-        if not edges:
-            return []
-        edge_map = self._edges
-        tris = self._tris
-        rows = []
-        for e in edges:
-            i, j = e
-            s0, s1 = edge_map[e]
-            rows.append((i, j, sum(tris[s0]) - i - j, sum(tris[s1]) - i - j))  # type: ignore[arg-type]
-        # Tested on the Python rows: iterating an array's rows costs ten times more.
-        ok = np.array([edge_key(k, l) not in edge_map for _, _, k, l in rows])  # noqa: E741
-        ok &= self.convex_mask(np.array(rows, dtype=np.int64))
-        return [e for e, good in zip(edges, ok.tolist(), strict=True) if good]
-
     def convex_mask(self, quads: np.ndarray) -> np.ndarray:
         """The geometric swap preconditions of quads ``(E, 4)`` rows ``(i, j, k, l)``, batched:
         strictly convex in both meshes, new triangles not reversed (all but "the new edge does
