@@ -2,11 +2,12 @@
 
 import cv2
 import numpy as np
+import pytest
 
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
-from pwlreg.core.refine import epipolar_pairs, guide, guided_pairs, levels
+from pwlreg.core.refine import epipolar_pairs, flow_scale, guide, guided_pairs, levels
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
@@ -15,13 +16,13 @@ from tests.core.synthetic import book_map, open_book
 SIZE, CREASE = (320, 240), 150.0
 
 
-def _far_points() -> tuple[np.ndarray, np.ndarray]:
+def _far_points(zoom: int = 1) -> tuple[np.ndarray, np.ndarray]:
     # A grid that leaves a 90 px band around the crease without vertices: the mesh's triangles
     # span the fold, so their affine maps are off there.
-    xs = np.array([5.0, 60.0, 105.0, 195.0, 250.0, 314.0])
-    ys = np.array([5.0, 80.0, 160.0, 234.0])
+    xs = np.array([5.0, 60.0, 105.0, 195.0, 250.0, 314.0]) * zoom
+    ys = np.array([5.0, 80.0, 160.0, 234.0]) * zoom
     ref = np.array([(x, y) for x in xs for y in ys])
-    return ref, np.column_stack(book_map(ref[:, 0], ref[:, 1], CREASE))
+    return ref, np.column_stack(book_map(ref[:, 0], ref[:, 1], CREASE * zoom))
 
 
 def _mean_epe(result) -> float:
@@ -33,20 +34,25 @@ def _mean_epe(result) -> float:
     return float(np.nanmean(np.hypot(mx - tx, my - ty)[label >= 0]))
 
 
-def _misses(mesh, found) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
+def _misses(mesh, found, zoom: int = 1) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]
     """Distance (px) of each new pair's moving point to the truth, and of the old mesh's map
     there."""
-    truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1], CREASE))
-    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, SIZE[::-1])
+    truth = np.column_stack(book_map(found.reference[:, 0], found.reference[:, 1],
+                                     CREASE * zoom))
+    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles,
+                              (SIZE[1] * zoom, SIZE[0] * zoom))
     cells = np.rint(found.reference).astype(int)
     old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
                         my[cells[:, 1], cells[:, 0]] - truth[:, 1])
     return np.hypot(*(found.moving - truth).T), old_miss
 
 
-def test_guided_pairs_lie_on_the_true_map() -> None:
-    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
-    ref, mov = _far_points()
+@pytest.mark.parametrize(("zoom", "scale"), [(1, 1), (3, 2)])
+def test_guided_pairs_lie_on_the_true_map(zoom: int, scale: int) -> None:
+    # At 960x720 the residual flow stops at a quarter of the side (FLOW_SIDE), not at half.
+    ref_img, mov_img = open_book((SIZE[0] * zoom, SIZE[1] * zoom), CREASE * zoom, seed=3)
+    assert flow_scale(ref_img.shape) == scale
+    ref, mov = _far_points(zoom)
     mesh, _ = initial_mesh(ref, mov, 25.0)
     found = guided_pairs(guide(levels(ref_img, mov_img), mesh.reference, mesh.moving,
                                mesh.triangles),
@@ -54,7 +60,7 @@ def test_guided_pairs_lie_on_the_true_map() -> None:
                          epsilon=0.01, epsilon_pixels=250.0)
     assert found.counts["inserted"] == len(found.reference) >= 10, found.counts
     assert found.counts["inserted"] <= len(ref)  # the budget
-    miss, old_miss = _misses(mesh, found)
+    miss, old_miss = _misses(mesh, found, zoom)
     assert np.median(miss) < 0.5 and miss.max() < 2.0, np.sort(miss)[-5:]
     # Near the fold the old map was wrong by pixels: the new pairs correct it there.
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
