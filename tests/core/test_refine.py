@@ -7,7 +7,16 @@ import pytest
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
-from pwlreg.core.refine import epipolar_pairs, flow_scale, guide, guided_pairs, levels
+from pwlreg.core.refine import (
+    CORNER_QUALITY,
+    MIN_SPACING,
+    epipolar_pairs,
+    flow_scale,
+    guide,
+    guided_pairs,
+    levels,
+    spaced,
+)
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
@@ -54,8 +63,8 @@ def test_guided_pairs_lie_on_the_true_map(zoom: int, scale: int) -> None:
     assert flow_scale(ref_img.shape) == scale
     ref, mov = _far_points(zoom)
     mesh, _ = initial_mesh(ref, mov, 25.0)
-    found = guided_pairs(guide(levels(ref_img, mov_img), mesh.reference, mesh.moving,
-                               mesh.triangles),
+    grey = levels(ref_img, mov_img)
+    found = guided_pairs(guide(grey, mesh.reference, mesh.moving, mesh.triangles),
                          prepare_images(ref_img, mov_img, 16), measured=len(ref), budget=len(ref),
                          epsilon=0.01, epsilon_pixels=250.0)
     assert found.counts["inserted"] == len(found.reference) >= 10, found.counts
@@ -75,8 +84,8 @@ def _epipolar_pairs(ref_img: np.ndarray, mov_img: np.ndarray):  # type: ignore[n
     ref, mov = _far_points()
     mesh, _ = initial_mesh(ref, mov, 25.0)
     none = np.zeros((0, 2))
-    found = epipolar_pairs(guide(levels(ref_img, mov_img), mesh.reference, mesh.moving,
-                                 mesh.triangles),
+    grey = levels(ref_img, mov_img)
+    found = epipolar_pairs(guide(grey, mesh.reference, mesh.moving, mesh.triangles),
                            prepare_images(ref_img, mov_img, 16), BOOK_F, added=(none, none),
                            measured=len(ref), budget=len(ref), epsilon=0.01,
                            epsilon_pixels=250.0, threshold=1.5)
@@ -130,3 +139,30 @@ def test_insertion_lowers_the_error_and_is_recorded() -> None:
         len(refined.search.steps))
     assert all(m["reason"] == MOVES[name].reason for name, m in moves.items())
     assert mesh_document(refined)["vertex_origins"] == refined.origins
+
+
+def test_spaced_is_the_greedy_choice_in_order() -> None:
+    rng = np.random.default_rng(5)
+    points = rng.uniform(0, 200, (3000, 2))
+    points[:50] = points[0] + rng.normal(0, 1.0, (50, 2))  # a dense cluster first
+    for distance, count in ((7.5, 10_000), (12.0, 100), (2.0, 3000)):
+        kept: list[int] = []
+        for i, p in enumerate(points):
+            if len(kept) == count:
+                break
+            if all(np.hypot(*(points[kept] - p).T) >= distance) if kept else True:
+                kept.append(i)
+        assert spaced(points, distance, count).tolist() == kept
+    assert spaced(points[:0], 5.0, 10).tolist() == []
+
+
+def test_shared_corners_are_what_opencv_chooses() -> None:
+    # Thinning the one detection at 2 px to a source's spacing gives OpenCV's own choice at
+    # that spacing (here exactly), so both sources and both rounds share one detection.
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    grey = levels(ref_img, mov_img)
+    for vertices in (24, 60, 200):
+        distance = max(np.sqrt(SIZE[0] * SIZE[1] / vertices) * MIN_SPACING, 2.0)
+        direct = cv2.goodFeaturesToTrack(ref_img, 4 * vertices, CORNER_QUALITY, distance)
+        chosen = grey.corners[spaced(grey.corners, distance, 4 * vertices)]
+        np.testing.assert_array_equal(chosen, direct.reshape(-1, 2))
