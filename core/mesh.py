@@ -12,11 +12,12 @@ with a single triangle is on the boundary.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from itertools import compress
 from typing import NamedTuple
 
 import numpy as np
 
-from pwlreg.core.raster import fixed_point, orientation, quantize
+from pwlreg.core.raster import fixed_point, quantize
 
 Edge = tuple[int, int]
 
@@ -28,6 +29,18 @@ def orient_fixed(p: tuple[int, int], q: tuple[int, int], r: tuple[int, int]) -> 
     """Exact orientation sign of fixed-point points (Python ints: fast for single tests)."""
     cross = (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
     return (cross > 0) - (cross < 0)
+
+
+def cross_fixed(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Twice the signed areas of fixed-point triangles ``(p, q, r)``, ``(..., 2)`` int64 each.
+
+    Exact (its sign is :func:`orient_fixed`'s) for coordinates within :data:`MAX_COORDINATE`:
+    twice the area of a triangle in a square of side ``2 * MAX_COORDINATE * SUBPIXEL = 2**31``
+    is at most ``2**62``.
+    """
+    return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
+        r[..., 0] - p[..., 0]
+    )
 
 
 def edge_key(i: int, j: int) -> Edge:
@@ -83,20 +96,33 @@ class Mesh:
         self.moving = quantize(moving).reshape(-1, 2)
         if self.reference.shape != self.moving.shape:
             raise ValueError("reference and moving vertices must have the same shape")
-        self.ref_fixed = [tuple(v) for v in fixed_point(self.reference).tolist()]
-        self.mov_fixed = [tuple(v) for v in fixed_point(self.moving).tolist()]
-        # The same, as arrays for the batched predicates (the vertices never change).
-        self._fixed_arrays = (
-            np.array(self.ref_fixed, dtype=np.int64).reshape(-1, 2),
-            np.array(self.mov_fixed, dtype=np.int64).reshape(-1, 2),
-        )
+        ref_xy, mov_xy = fixed_point(self.reference), fixed_point(self.moving)
+        # Tuples of Python ints for the single predicates, arrays for the batched ones.
+        self.ref_fixed = list(zip(*ref_xy.T.tolist(), strict=True))
+        self.mov_fixed = list(zip(*mov_xy.T.tolist(), strict=True))
+        self._fixed_arrays = (ref_xy, mov_xy)
         tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if len(tris) and (tris.min() < 0 or tris.max() >= len(self.reference)):
             raise ValueError("triangle vertex index out of range")
-        self._tris: list[tuple[int, int, int] | None] = []
+        cross = cross_fixed(*np.moveaxis(ref_xy[tris], 1, 0))
+        if not cross.all():
+            a, b, c = tris[np.argmin(cross != 0)].tolist()
+            raise ValueError(f"degenerate triangle {(a, b, c)} in the reference mesh")
+        tris = np.where((cross > 0)[:, None], tris, tris[:, [0, 2, 1]])
+        self._tris: list[tuple[int, int, int] | None] = list(zip(*tris.T.tolist(), strict=True))
+        # The slots again as arrays, for the batched queries: each slot's triangle (-1 once
+        # removed) and when it was added, which orders the owners of its edges in _edges. The
+        # changes are applied only when a batched query runs (_sync), not swap by swap.
+        self._rows = tris
+        self._stamps = np.arange(len(tris))
+        self._changed: list[int] = []
+        # Edges (a, b), (b, c), (c, a) of each triangle in turn, in the order _add files them.
+        second = tris[:, [1, 2, 0]]
+        lo, hi = np.minimum(tris, second).ravel(), np.maximum(tris, second).ravel()
+        slots = np.repeat(np.arange(len(tris)), 3)
         self._edges: dict[Edge, list[int]] = {}
-        for t in tris:
-            self._add(self._oriented(int(t[0]), int(t[1]), int(t[2])))
+        for e, slot in zip(zip(lo.tolist(), hi.tolist(), strict=True), slots.tolist(), strict=True):
+            self._edges.setdefault(e, []).append(slot)
 
     # -- construction helpers ------------------------------------------------------------------
     def _oriented(self, a: int, b: int, c: int) -> tuple[int, int, int]:
@@ -105,16 +131,12 @@ class Mesh:
             raise ValueError(f"degenerate triangle {(a, b, c)} in the reference mesh")
         return (a, b, c) if s > 0 else (a, c, b)
 
-    def _add(self, tri: tuple[int, int, int], slot: int | None = None) -> int:
-        if slot is None:
-            slot = len(self._tris)
-            self._tris.append(tri)
-        else:
-            self._tris[slot] = tri
+    def _add(self, tri: tuple[int, int, int], slot: int) -> None:
+        self._tris[slot] = tri
+        self._changed.append(slot)
         a, b, c = tri
         for e in (edge_key(a, b), edge_key(b, c), edge_key(c, a)):
             self._edges.setdefault(e, []).append(slot)
-        return slot
 
     def _drop(self, slot: int) -> None:
         tri = self._tris[slot]
@@ -126,22 +148,40 @@ class Mesh:
             if not owners:
                 del self._edges[e]
         self._tris[slot] = None
+        self._changed.append(slot)
 
     # -- queries -------------------------------------------------------------------------------
     @property
     def triangles(self) -> np.ndarray:
         """Current triangles, ``(T, 3)`` int64, in slot order (removed slots skipped)."""
-        live = [t for t in self._tris if t is not None]
-        return np.array(live, dtype=np.int64).reshape(-1, 3)
+        return self._live()[1]
 
     @property
     def n_triangles(self) -> int:
         """Number of triangles."""
-        return sum(t is not None for t in self._tris)
+        return len(self._tris) - self._tris.count(None)
 
     def slots(self) -> list[int]:
         """Slot indices of the live triangles."""
-        return [s for s, t in enumerate(self._tris) if t is not None]
+        return list(compress(range(len(self._tris)), self._tris))
+
+    def _sync(self) -> None:
+        """Bring the slot arrays up to date with the changes made since the last batched query."""
+        if not self._changed:
+            return
+        changed = np.array(self._changed, dtype=np.int64)
+        self._changed.clear()
+        # A slot holds what its last change left; the triangles added since the last query are
+        # stamped after every earlier one, in the order of their changes.
+        slots, from_end = np.unique(changed[::-1], return_index=True)
+        self._stamps[slots] = self._stamps.max() + len(changed) - from_end
+        self._rows[slots] = [self._tris[s] or (-1, -1, -1) for s in slots.tolist()]
+
+    def _live(self) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of the live triangles, ``(T,)``, and their vertex triples, ``(T, 3)``, int64."""
+        self._sync()
+        slots = np.flatnonzero(self._rows[:, 0] >= 0)
+        return slots, self._rows[slots]
 
     def triangle(self, slot: int) -> tuple[int, int, int]:
         """Vertex triple stored in ``slot``."""
@@ -202,17 +242,18 @@ class Mesh:
             :meth:`quad`, in its order); -1 for the missing second one of a boundary edge.
         """
         n = len(self.reference)
-        # Python only gathers the slots; the apexes (vertex sum minus the edge's ends) are numpy.
-        table = np.array(
-            [(i, j, o[0], o[1] if len(o) == 2 else -1) for (i, j), o in self._edges.items()],
-            dtype=np.int64,
-        ).reshape(-1, 4)
-        table = table[np.argsort(table[:, 0] * n + table[:, 1])]
-        i, j, s0, s1 = table.T
-        sums = np.array([sum(t) if t is not None else 0 for t in self._tris] + [0], dtype=np.int64)
-        apexes = sums[np.stack([s0, s1], axis=1)] - (i + j)[:, None]
-        apexes[s1 < 0, 1] = -1
-        return i * n + j, apexes
+        slots, tris = self._live()
+        # Each side of each triangle with its apex, grouped by edge; in a group, the owners in
+        # the order they were added, which is their order in _edges.
+        second, third = tris[:, [1, 2, 0]], tris[:, [2, 0, 1]]
+        code = (np.minimum(tris, second) * n + np.maximum(tris, second)).ravel()
+        order = np.lexsort((np.repeat(self._stamps[slots], 3), code))
+        code, apex = code[order], third.ravel()[order]
+        first = np.flatnonzero(np.diff(code, prepend=-1))
+        pair = np.diff(first, append=len(code)) == 2
+        apexes = np.stack([apex[first], np.full(len(first), -1, dtype=np.int64)], axis=1)
+        apexes[pair, 1] = apex[first[pair] + 1]
+        return code[first], apexes
 
     def across(self, e: Edge, apex: int) -> int:
         """Vertex facing ``apex`` across internal edge ``e``, -1 if there is none.
@@ -232,13 +273,9 @@ class Mesh:
 
     def reversed_slots(self) -> list[int]:
         """Slots of patch reversals: triangles not positively oriented in the moving mesh."""
-        live = [(s, t) for s, t in enumerate(self._tris) if t is not None]
-        if not live:
-            return []
-        idx = np.array([t for _, t in live])
-        m = self.moving[idx]
-        sign = orientation(m[:, 0], m[:, 1], m[:, 2])
-        return [s for (s, _), g in zip(live, sign, strict=True) if g <= 0]
+        slots, tris = self._live()
+        cross = cross_fixed(*np.moveaxis(self._fixed_arrays[1][tris], 1, 0))
+        return slots[cross <= 0].tolist()
 
     @staticmethod
     def strictly_convex(q: Quad, fixed: list[tuple[int, int]]) -> bool:
