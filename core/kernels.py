@@ -598,3 +598,186 @@ def line_correlation(target, patch, offsets, start, step, normal, linear, length
                     out[i, s, b] = -1.0
                 else:
                     out[i, s, b] = sxp / np.sqrt(var * pv)
+
+# Points per block of :func:`template_peaks`: a thread's scratch arrays are allocated once per
+# block, not once per point.
+_PEAK_BLOCK = 16
+
+# Template pixels per pass over the correlation accumulators (the taps padded with zeros to a
+# multiple): each pass loads and stores the accumulators once; 8 ran 10-20 % faster than 4 (the
+# window's unaligned loads bound it then).
+_TAPS = 8
+
+
+@njit(cache=True)
+def _correlations(win, tpl, offsets, acc):  # type: ignore[no-untyped-def]
+    """Sums ``acc[j] = sum_i win[offsets[i] + j] * tpl[i]``: the template (its pixels ``tpl``
+    at flat offsets ``offsets`` into the window, padded with zero taps to a multiple of
+    :data:`_TAPS`) times the flat window ``win`` at every flat position ``j``.
+
+    The window's rows are swept at full width (the columns past the surface are never read), so
+    each group of taps is one long contiguous loop, which vectorizes.
+    """
+    acc[:] = 0.0
+    span = acc.shape[0]
+    for g in range(0, tpl.shape[0], _TAPS):
+        # Slices, not offset indices: numba's wraparound of negative indices would keep the
+        # loop from vectorizing (8 x slower).
+        w0 = win[offsets[g] : offsets[g] + span]
+        w1 = win[offsets[g + 1] : offsets[g + 1] + span]
+        w2 = win[offsets[g + 2] : offsets[g + 2] + span]
+        w3 = win[offsets[g + 3] : offsets[g + 3] + span]
+        w4 = win[offsets[g + 4] : offsets[g + 4] + span]
+        w5 = win[offsets[g + 5] : offsets[g + 5] + span]
+        w6 = win[offsets[g + 6] : offsets[g + 6] + span]
+        w7 = win[offsets[g + 7] : offsets[g + 7] + span]
+        t0, t1, t2, t3 = tpl[g], tpl[g + 1], tpl[g + 2], tpl[g + 3]
+        t4, t5, t6, t7 = tpl[g + 4], tpl[g + 5], tpl[g + 6], tpl[g + 7]
+        for j in range(span):
+            acc[j] += (w0[j] * t0 + w1[j] * t1 + w2[j] * t2 + w3[j] * t3
+                       + w4[j] * t4 + w5[j] * t5 + w6[j] * t6 + w7[j] * t7)
+
+
+@njit(cache=True, error_model="numpy")
+def _normalized(acc, sums, squares, side, size, s, var_t, surface):  # type: ignore[no-untyped-def]
+    """``surface`` from the cross sums ``acc`` (:func:`_correlations`), the integral images of
+    the window and its squares, the template's sum ``s`` and ``var_t``, ``count`` times the sum
+    of its squared deviations.
+
+    The numerator and the window's ``var_w`` are OpenCV's scaled by ``count``: whole numbers,
+    exact in float64. Numpy's error model: the division of a flat window (0 / 0) is computed
+    and discarded without a branch, so the row loop vectorizes.
+    """
+    count = size * size
+    m = surface.shape[0]
+    for dy in range(m):
+        top_s = sums[dy]
+        bottom_s = sums[dy + size]
+        top_q = squares[dy]
+        bottom_q = squares[dy + size]
+        row = acc[dy * side : dy * side + m]
+        out = surface[dy]
+        for dx in range(m):
+            sw = np.float64(bottom_s[dx + size] - top_s[dx + size] - bottom_s[dx] + top_s[dx])
+            sww = np.float64(bottom_q[dx + size] - top_q[dx + size] - bottom_q[dx] + top_q[dx])
+            var_w = count * sww - sw * sw
+            c = (count * np.float64(row[dx]) - sw * s) / np.sqrt(var_w * var_t)
+            # OpenCV clips rounding past +-1 to +-1 and gives a flat window 0.
+            c = min(max(c, -1.0), 1.0)
+            out[dx] = c if var_w > 0.0 else 0.0
+
+
+@njit(cache=True)
+def _surface_peaks(surface, rows):  # type: ignore[no-untyped-def]
+    """Best value of ``surface``, its position (the first in row-major order, as
+    ``cv2.minMaxLoc``) and the largest local maximum outside the diamond ``|dx| + |dy| <= 2``
+    around it (-1 without one); ``rows`` is scratch of the surface's shape."""
+    m = surface.shape[0]
+    best = surface[0, 0]
+    bx = 0
+    by = 0
+    for y in range(m):
+        row = surface[y]
+        for x in range(m):
+            if row[x] > best:
+                best = row[x]
+                bx = x
+                by = y
+    # Maxima of three along the rows (a loop that vectorizes): a pixel is a local maximum
+    # (no neighbour greater, as a comparison with cv2.dilate's default border) when it reaches
+    # those of its row and of the rows above and below.
+    for y in range(m):
+        row = surface[y]
+        out = rows[y]
+        out[0] = max(row[0], row[1])
+        for x in range(1, m - 1):
+            out[x] = max(max(row[x - 1], row[x]), row[x + 1])
+        out[m - 1] = max(row[m - 2], row[m - 1])
+    second = -np.inf
+    for y in range(m):
+        row = surface[y]
+        up = rows[max(y - 1, 0)]
+        mid = rows[y]
+        down = rows[min(y + 1, m - 1)]
+        near = 2 - abs(y - by)
+        for x in range(m):
+            v = row[x]
+            if v > second and v >= mid[x] and v >= up[x] and v >= down[x] and abs(x - bx) > near:
+                second = v
+    return float(best), bx, by, float(second) if second > -np.inf else -1.0
+
+
+@njit(cache=True, parallel=True)
+def template_peaks(ref, warped, corners, windows, size, radius, min_std, best, second, peak,
+                   flat):  # type: ignore[no-untyped-def]
+    """Correlation peaks of templates of ``ref`` over windows of ``warped``, 8-bit images
+    (:func:`core.reliability.uniqueness`).
+
+    Template ``k`` is the ``size x size`` block of ``ref`` at top-left ``corners[k]`` (x, y);
+    its window the square of ``warped`` of side ``2 radius + size`` at ``windows[k]``, both
+    inside their images. A template whose standard deviation (population, computed as
+    ``cv2.meanStdDev`` does, bit for bit) is under ``min_std`` gets ``flat[k] = True`` and
+    nothing else. Otherwise its surface, of side ``2 radius + 1``, is that of
+    ``cv2.matchTemplate(window, template, cv2.TM_CCOEFF_NORMED)`` but exact: the sums are of
+    whole numbers, exact in the arithmetic used, where OpenCV's cross sums are float32 with
+    rounding errors (its correlations are off by up to 2e-3 on the real pairs of the benchmarks,
+    by 1e-2 in a dim window of a bright image); it is kept in float32, as OpenCV's.
+
+    Written: ``best[k]`` the surface's maximum, ``peak[k]`` the first position (x, y) of it in
+    row-major order, ``second[k]`` the largest local maximum (no 3x3 neighbour greater) outside
+    the diamond ``|dx| + |dy| <= 2`` around the best (the pixels ``cv2.circle`` of radius 2
+    fills), -1 if none. Points are shared among numba's threads in blocks.
+    """
+    n = corners.shape[0]
+    count = size * size
+    side = 2 * radius + size
+    m = 2 * radius + 1
+    scale = 1.0 / count
+    # Template pixel i lies at flat offset offsets[i] of the window; the padded taps (weight 0)
+    # read its first pixels.
+    taps = -(-count // _TAPS) * _TAPS
+    offsets = np.zeros(taps, dtype=np.int64)
+    for i in range(count):
+        offsets[i] = (i // size) * side + i % size
+    for block in prange((n + _PEAK_BLOCK - 1) // _PEAK_BLOCK):
+        tpl = np.zeros(taps, dtype=np.float32)
+        win = np.empty(side * side, dtype=np.float32)
+        acc = np.empty((m - 1) * side + m, dtype=np.float32)
+        # Integral images in integers: their running sums have no float latency chain.
+        sums = np.zeros((side + 1, side + 1), dtype=np.int64)
+        squares = np.zeros((side + 1, side + 1), dtype=np.int64)
+        surface = np.empty((m, m), dtype=np.float32)
+        rows = np.empty((m, m), dtype=np.float32)
+        for k in range(block * _PEAK_BLOCK, min((block + 1) * _PEAK_BLOCK, n)):
+            tx = corners[k, 0]
+            ty = corners[k, 1]
+            s = 0.0
+            sq = 0.0
+            for y in range(size):
+                for x in range(size):
+                    v = float(ref[ty + y, tx + x])
+                    tpl[y * size + x] = v
+                    s += v
+                    sq += v * v
+            # cv2.meanStdDev's expression on the same (exact) sums: its value bit for bit.
+            mean = s * scale
+            if np.sqrt(max(sq * scale - mean * mean, 0.0)) < min_std:
+                flat[k] = True
+                continue
+            wx = windows[k, 0]
+            wy = windows[k, 1]
+            for y in range(side):
+                row_s = 0
+                row_q = 0
+                for x in range(side):
+                    v = np.int64(warped[wy + y, wx + x])
+                    win[y * side + x] = v
+                    row_s += v
+                    row_q += v * v
+                    sums[y + 1, x + 1] = sums[y, x + 1] + row_s
+                    squares[y + 1, x + 1] = squares[y, x + 1] + row_q
+            # Products of 8-bit levels summed over at most 258 of them stay whole numbers
+            # under 2**24: exact in float32, in any order.
+            _correlations(win, tpl, offsets, acc)
+            _normalized(acc, sums, squares, side, size, s, count * sq - s * s, surface)
+            best[k], peak[k, 0], peak[k, 1], second[k] = _surface_peaks(surface, rows)

@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pwlreg.core.kernels import template_peaks
+
 #: A pair is ambiguous when its second correlation peak reaches this share of the best one.
 AMBIGUITY_RATIO = 0.97
 
@@ -74,19 +76,6 @@ class UniquenessResult:
         return {str(c): int(k) for c, k in zip(causes, n, strict=True)}
 
 
-_KERNEL3 = np.ones((3, 3), np.uint8)
-
-
-def _peaks(surface: np.ndarray, centre: tuple[float, float]) -> tuple[float, float, float]:
-    """Best value, second-best local maximum (more than 2 px from the best) and the best one's
-    distance from ``centre``."""
-    _, best, _, loc = cv2.minMaxLoc(surface)
-    mask = cv2.compare(surface, cv2.dilate(surface, _KERNEL3), cv2.CMP_GE)
-    cv2.circle(mask, loc, 2, 0, -1)
-    second = cv2.minMaxLoc(surface, mask)[1] if cv2.countNonZero(mask) else -1.0
-    return best, second, math.hypot(loc[0] - centre[0], loc[1] - centre[1])
-
-
 def _check_scale(
     ref: np.ndarray,
     warped: np.ndarray,
@@ -97,7 +86,12 @@ def _check_scale(
     todo: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Best peak, second/best ratio, peak distance and a low-texture flag for each pair (only
-    the pairs of ``todo``, a boolean mask, when given)."""
+    the pairs of ``todo``, a boolean mask, when given).
+
+    The correlation surfaces and their peaks are those of ``cv2.matchTemplate``
+    (``TM_CCOEFF_NORMED``), ``cv2.minMaxLoc`` and a 3x3 ``cv2.dilate``, computed for all pairs
+    in one compiled kernel (:func:`core.kernels.template_peaks`; exact where OpenCV rounds).
+    """
     n = len(ref_pts)
     best = np.full(n, np.nan)
     ratio = np.full(n, np.nan)
@@ -106,7 +100,10 @@ def _check_scale(
     half = template // 2
     h, w = ref.shape
     hw, ww = warped.shape
-    if h < template or w < template:
+    # A window that would leave the image is moved inside it, not cut: a repeated pattern near
+    # the border must still show its second copy; an image smaller than it checks nothing.
+    side = 2 * (radius + half) + 1
+    if h < template or w < template or side > ww or side > hw:
         return best, ratio, dist, flat
     # The template is centred on the reference point rounded, and moved inside the image when
     # the point is nearer the border than half a template: its match is expected shifted alike.
@@ -118,28 +115,24 @@ def _check_scale(
     inside = np.all(np.abs(r - ref_pts) <= half + 1, axis=1)
     if todo is not None:
         inside &= todo
-    for i in np.flatnonzero(inside).tolist():
-        rx, ry = r[i]
-        px, py = p[i]
-        tpl = ref[ry - half : ry + half + 1, rx - half : rx + half + 1]
-        # A window that would leave the image is moved inside it, not cut: a repeated
-        # pattern near the border must still show its second copy.
-        side = 2 * (radius + half) + 1
-        if side > ww or side > hw:
-            continue
-        x0 = min(max(px - radius - half, 0), ww - side)
-        y0 = min(max(py - radius - half, 0), hw - side)
-        x1, y1 = x0 + side, y0 + side
-        if cv2.meanStdDev(tpl)[1][0, 0] < MIN_TEMPLATE_STD:
-            flat[i] = True
-            continue
-        surface = cv2.matchTemplate(warped[y0:y1, x0:x1], tpl, cv2.TM_CCOEFF_NORMED)
-        # Position of the prediction in the surface (top-left template corner convention).
-        centre = (expect[i, 0] - half - x0, expect[i, 1] - half - y0)
-        b, s, d = _peaks(surface, centre)
-        best[i] = b
-        ratio[i] = s / b if b > 0 else np.inf
-        dist[i] = d
+    idx = np.flatnonzero(inside)
+    if not len(idx):
+        return best, ratio, dist, flat
+    corners = r[idx] - half
+    windows = np.minimum(np.maximum(p[idx] - radius - half, 0), [ww - side, hw - side])
+    top, second = np.zeros(len(idx)), np.zeros(len(idx))
+    peak, low = np.zeros((len(idx), 2), np.int64), np.zeros(len(idx), bool)
+    template_peaks(np.ascontiguousarray(ref), np.ascontiguousarray(warped), corners, windows,
+                   template, radius, MIN_TEMPLATE_STD, top, second, peak, low)
+    flat[idx] = low
+    done = ~low
+    best[idx[done]] = top[done]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio[idx[done]] = np.where(top[done] > 0, second[done] / top[done], np.inf)
+    # Position of the prediction in the surface (top-left template corner convention). Python's
+    # math.hypot, not the C library's (numpy's, numba's): they differ in the last bit at times.
+    centre = expect[idx[done]] - half - windows[done]
+    dist[idx[done]] = [math.hypot(x, y) for x, y in (peak[done] - centre).tolist()]
     return best, ratio, dist, flat
 
 

@@ -1,12 +1,15 @@
 """Correlation uniqueness and neighbourhood checks (core.reliability)."""
 
+import math
+
 import cv2
 import numpy as np
 import pytest
 
+from pwlreg.core import reliability
 from pwlreg.core.matching import find_conjugate_points
 from pwlreg.core.options import RegistrationOptions
-from pwlreg.core.reliability import neighbour_outliers, uniqueness
+from pwlreg.core.reliability import MIN_TEMPLATE_STD, neighbour_outliers, uniqueness
 
 
 def _texture(shape, seed, period=None):
@@ -110,3 +113,196 @@ def test_ambiguous_pairs_confirmed_by_their_anchors_are_resolved_but_a_period_of
     assert not resolved_by_anchors(anchors, anchor_mov, ambiguous, off).any()
     # Without anchors nothing is resolved.
     assert not resolved_by_anchors(anchors[:3], anchor_mov[:3], ambiguous, right).any()
+
+
+# The per-point OpenCV code that core.kernels.template_peaks replaced, kept as the reference of
+# _check_scale (same signature and outputs).
+_KERNEL3 = np.ones((3, 3), np.uint8)
+
+
+def _reference_peaks(surface, centre):
+    _, best, _, loc = cv2.minMaxLoc(surface)
+    mask = cv2.compare(surface, cv2.dilate(surface, _KERNEL3), cv2.CMP_GE)
+    cv2.circle(mask, loc, 2, 0, -1)
+    second = cv2.minMaxLoc(surface, mask)[1] if cv2.countNonZero(mask) else -1.0
+    return best, second, math.hypot(loc[0] - centre[0], loc[1] - centre[1])
+
+
+def _reference_check_scale(ref, warped, ref_pts, pred_pts, template, radius, todo=None,
+                           match=cv2.matchTemplate):
+    n = len(ref_pts)
+    best = np.full(n, np.nan)
+    ratio = np.full(n, np.nan)
+    dist = np.full(n, np.inf)
+    flat = np.zeros(n, bool)
+    half = template // 2
+    h, w = ref.shape
+    hw, ww = warped.shape
+    if h < template or w < template:
+        return best, ratio, dist, flat
+    r = np.rint(ref_pts).astype(np.int64)
+    r[:, 0] = np.clip(r[:, 0], half, w - 1 - half)
+    r[:, 1] = np.clip(r[:, 1], half, h - 1 - half)
+    expect = pred_pts + (r - ref_pts)
+    p = np.rint(expect).astype(np.int64)
+    inside = np.all(np.abs(r - ref_pts) <= half + 1, axis=1)
+    if todo is not None:
+        inside &= todo
+    for i in np.flatnonzero(inside).tolist():
+        rx, ry = r[i]
+        px, py = p[i]
+        tpl = ref[ry - half : ry + half + 1, rx - half : rx + half + 1]
+        side = 2 * (radius + half) + 1
+        if side > ww or side > hw:
+            continue
+        x0 = min(max(px - radius - half, 0), ww - side)
+        y0 = min(max(py - radius - half, 0), hw - side)
+        x1, y1 = x0 + side, y0 + side
+        if cv2.meanStdDev(tpl)[1][0, 0] < MIN_TEMPLATE_STD:
+            flat[i] = True
+            continue
+        surface = match(warped[y0:y1, x0:x1], tpl, cv2.TM_CCOEFF_NORMED)
+        centre = (expect[i, 0] - half - x0, expect[i, 1] - half - y0)
+        b, s, d = _reference_peaks(surface, centre)
+        best[i] = b
+        ratio[i] = s / b if b > 0 else np.inf
+        dist[i] = d
+    return best, ratio, dist, flat
+
+
+def _exact_match(window, template, method):
+    """cv2.matchTemplate's TM_CCOEFF_NORMED in float64 from exact sums, stored in float32."""
+    assert method == cv2.TM_CCOEFF_NORMED
+    w = np.lib.stride_tricks.sliding_window_view(window.astype(np.float64), template.shape)
+    t = template.astype(np.float64)
+    n = t.size
+    sw, sww = w.sum(axis=(2, 3)), (w * w).sum(axis=(2, 3))
+    num = n * np.einsum("ijkl,kl->ij", w, t) - sw * t.sum()
+    var_w = n * sww - sw * sw
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = np.clip(num / np.sqrt(var_w * (n * (t * t).sum() - t.sum() ** 2)), -1.0, 1.0)
+    return np.where(var_w > 0, c, 0.0).astype(np.float32)
+
+
+def _exact_check_scale(*args):
+    return _reference_check_scale(*args, match=_exact_match)
+
+
+def _flat_patches(image, seed):
+    """``image`` with flat rectangles (black, mid-grey, white) pasted in."""
+    out = image.copy()
+    rng = np.random.default_rng(seed)
+    h, w = out.shape
+    for level in (0, 128, 255, 37):
+        x, y = rng.integers(0, w - 60), rng.integers(0, h - 50)
+        out[y : y + int(rng.integers(20, 50)), x : x + int(rng.integers(20, 60))] = level
+    return out
+
+
+def _cases():
+    """Image pairs, pairs of points and a prior: distinct and repeated textures, flat areas, a
+    homography, points at and beyond the borders."""
+    rng = np.random.default_rng(11)
+    shape = (240, 320)
+    border = np.array([[0.0, 0.0], [319.0, 239.0], [0.4, 120.0], [160.0, 239.4], [3.0, 5.0],
+                       [316.0, 2.0], [-2.0, 100.0], [330.0, 50.0], [160.0, -9.0], [5.0, 236.0]])
+    inner = rng.uniform([0, 0], [319, 239], (150, 2))
+    pts = np.concatenate([border, inner])
+    tex = _texture(shape, 0)
+    yield "texture", tex, _shifted(tex, 7.0, -4.0, 3.0, 1), pts, pts + [7.0, -4.0], None
+    wrong = pts + [7.0, -4.0] + rng.normal(0, 2.0, pts.shape)
+    yield "texture, noisy pairs", tex, _shifted(tex, 7.0, -4.0, 3.0, 1), pts, wrong, None
+    board = _texture(shape, 2, period=24)
+    yield "checkerboard", board, _shifted(board, 5.0, 3.0, 4.0, 3), pts, pts + [29.0, 3.0], None
+    shifted = _shifted(board, 5.0, 3.0, 4.0, 3)
+    yield "checkerboard, right", board, shifted, pts, pts + [5.0, 3.0], None
+    flat = _flat_patches(tex, 5)
+    moved = _flat_patches(_shifted(tex, 2.0, 1.0, 2.0, 6), 5)
+    yield "flat areas", flat, moved, pts, pts + 1.5, None
+    H = np.array([[1.02, 0.03, 6.0], [-0.02, 0.99, -3.0], [1e-5, 2e-5, 1.0]])
+    mov = cv2.warpPerspective(tex, H, shape[::-1], borderMode=cv2.BORDER_REFLECT)
+    q = np.column_stack([pts, np.ones(len(pts))]) @ H.T
+    yield "homography", tex, mov, pts, q[:, :2] / q[:, 2:], H
+    yield "homography, identity prior", tex, mov, pts, q[:, :2] / q[:, 2:], None
+
+
+def _clean_checkerboard():
+    """Two levels and no noise: copies of a template correlate exactly alike (tied peaks)."""
+    board = np.where(_texture((240, 320), 4, period=16) > 127, 200, 40).astype(np.uint8)
+    pts = np.random.default_rng(12).uniform([0, 0], [319, 239], (120, 2))
+    return "clean checkerboard", board, np.roll(board, 3, axis=1), pts, pts + [3.0, 0.0], None
+
+
+def _both(monkeypatch, case, reference):
+    """Causes from uniqueness with the kernel and with ``reference`` as _check_scale, and the
+    outputs of both on every call uniqueness makes."""
+    _, ref, mov, a, b, H = case
+    kernel = reliability._check_scale
+    calls = []
+
+    def both(*args):
+        calls.append((reference(*args), kernel(*args)))
+        return calls[-1][1]
+
+    monkeypatch.setattr(reliability, "_check_scale", both)
+    got = uniqueness(ref, mov, a, b, H)
+    monkeypatch.setattr(reliability, "_check_scale", reference)
+    want = uniqueness(ref, mov, a, b, H)
+    assert len(calls) == 2  # the fine scale and one coarse level
+    assert sum(np.isfinite(c[0][0]).sum() for c in calls) > 100
+    return got.cause.tolist(), want.cause.tolist(), calls
+
+
+@pytest.mark.parametrize("case", list(_cases()), ids=lambda c: c[0])
+def test_check_scale_decides_as_the_per_point_opencv_code(monkeypatch, case):
+    """Same causes, flags and peak distances as OpenCV's per-point surfaces on every call
+    uniqueness makes; the values differ only by OpenCV's rounding."""
+    got, want, calls = _both(monkeypatch, case, _reference_check_scale)
+    assert got == want
+    for (best, ratio, dist, flat), (best_k, ratio_k, dist_k, flat_k) in calls:
+        np.testing.assert_array_equal(flat_k, flat)
+        np.testing.assert_array_equal(dist_k, dist)
+        # OpenCV sums the cross products in float32 and rounds (the kernel's sums are exact):
+        # under 2e-5 on the textures here, 3e-4 (best) and 9e-4 (ratio) on the checkerboard,
+        # whose low contrast over bright squares cancels more.
+        np.testing.assert_allclose(best_k, best, rtol=0, atol=1e-3)
+        np.testing.assert_allclose(ratio_k, ratio, rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("case", [*_cases(), _clean_checkerboard()], ids=lambda c: c[0])
+def test_check_scale_is_the_per_point_code_on_exact_surfaces(monkeypatch, case):
+    """Bit for bit the per-point code (cv2.minMaxLoc, dilate, circle) run on exact correlation
+    surfaces, tied peaks included: the first in row-major order is the best. (OpenCV's rounding
+    breaks such ties at random: on the clean checkerboard its best peak is elsewhere for 17 of
+    104 pairs of the fine scale, though no decision changes here.)"""
+    got, want, calls = _both(monkeypatch, case, _exact_check_scale)
+    assert got == want
+    for reference, kernel in calls:
+        for a, b in zip(kernel, reference, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
+def test_the_circle_cleared_around_the_best_peak_is_the_kernels_diamond():
+    """core.kernels.template_peaks skips ``|dx| + |dy| <= 2`` around the best peak: the pixels
+    cv2.circle of radius 2 fills, clipped at the borders alike."""
+    yy, xx = np.mgrid[0:9, 0:9]
+    for loc in [(4, 4), (0, 0), (8, 3), (1, 7)]:
+        mask = np.full((9, 9), 255, np.uint8)
+        cv2.circle(mask, loc, 2, 0, -1)
+        np.testing.assert_array_equal(mask == 0, np.abs(xx - loc[0]) + np.abs(yy - loc[1]) <= 2)
+
+
+def test_low_texture_flag_follows_opencv_at_the_threshold():
+    """Templates with a standard deviation on either side of MIN_TEMPLATE_STD (to the last
+    bit of cv2.meanStdDev) are flagged as OpenCV flags them."""
+    rng = np.random.default_rng(3)
+    ref = np.zeros((40, 40 * 60), np.uint8)
+    for k in range(60):
+        amp = 1 + k % 5
+        ref[:, 40 * k : 40 * k + 40] = np.clip(120 + rng.integers(-amp, amp + 1, (40, 40)), 0, 255)
+    pts = np.array([[40.0 * k + 20, 20.0] for k in range(60)])
+    for template, radius in [(11, 10), (15, 3)]:
+        _, _, _, flat_k = reliability._check_scale(ref, ref, pts, pts, template, radius)
+        _, _, _, flat = _reference_check_scale(ref, ref, pts, pts, template, radius)
+        np.testing.assert_array_equal(flat_k, flat)
+        assert 0 < flat.sum() < len(pts)
