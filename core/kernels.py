@@ -549,6 +549,11 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
                         out[y, x, colour] = full
 
 
+# Candidates per block of :func:`line_correlation`: a thread's scratch arrays are allocated once
+# per block, not once per candidate.
+_LINE_BLOCK = 16
+
+
 @njit(cache=True, parallel=True)
 def line_correlation(target, patch, offsets, start, step, normal, linear, lengths, bands,
                      out):  # type: ignore[no-untyped-def]
@@ -558,46 +563,109 @@ def line_correlation(target, patch, offsets, start, step, normal, linear, length
     (bilinear) at ``start[i] + s * step[i] + bands[b] * normal[i] + linear[i] @ offsets[p]``
     and correlated with ``patch[i]`` (zero-mean); ``out[i, s, b]`` gets the correlation, -1
     where a sample falls outside the target or either side is flat. Candidates are shared
-    among numba's threads (each writes its own rows).
+    among numba's threads in blocks (each writes its own rows).
+
+    What does not depend on the position (the products of ``linear[i]`` and the offsets, the
+    patch's zero-mean values) is computed once per candidate, and the bounds once per position
+    for the whole patch; each sample is the same expression, summed in the same order, so the
+    outputs are those of the sample-by-sample loop bit for bit.
     """
     h, w = target.shape
+    xmax = w - 1.0
+    ymax = h - 1.0
     n_off = offsets.shape[0]
-    for i in prange(start.shape[0]):
-        pm = 0.0
-        for p in range(n_off):
-            pm += patch[i, p]
-        pm /= n_off
-        pv = 0.0
-        for p in range(n_off):
-            pv += (patch[i, p] - pm) ** 2
-        for s in range(lengths[i]):
-            for b in range(bands.shape[0]):
-                cx = start[i, 0] + s * step[i, 0] + bands[b] * normal[i, 0]
-                cy = start[i, 1] + s * step[i, 1] + bands[b] * normal[i, 1]
-                sx = 0.0
-                sxx = 0.0
-                sxp = 0.0
-                inside = True
-                for p in range(n_off):
-                    x = cx + linear[i, 0, 0] * offsets[p, 0] + linear[i, 0, 1] * offsets[p, 1]
-                    y = cy + linear[i, 1, 0] * offsets[p, 0] + linear[i, 1, 1] * offsets[p, 1]
-                    if not (x >= 0.0 and y >= 0.0 and x <= w - 1.0 and y <= h - 1.0):
-                        inside = False
-                        break
-                    x0 = min(int(x), w - 2)
-                    y0 = min(int(y), h - 2)
-                    fx = x - x0
-                    fy = y - y0
-                    v = ((target[y0, x0] * (1.0 - fx) + target[y0, x0 + 1] * fx) * (1.0 - fy)
-                         + (target[y0 + 1, x0] * (1.0 - fx) + target[y0 + 1, x0 + 1] * fx) * fy)
-                    sx += v
-                    sxx += v * v
-                    sxp += v * (patch[i, p] - pm)
-                var = sxx - sx * sx / n_off
-                if not inside or var <= 1e-9 or pv <= 1e-9:
-                    out[i, s, b] = -1.0
-                else:
-                    out[i, s, b] = sxp / np.sqrt(var * pv)
+    n_cand = start.shape[0]
+    flat = target.ravel()
+    uw = np.uint64(w)
+    one = np.uint64(1)
+    for block in prange((n_cand + _LINE_BLOCK - 1) // _LINE_BLOCK):
+        # The four products of linear[i] @ offsets[p], kept apart: a sample lies at
+        # (centre + first) + second, the order of the expression they replace.
+        xu = np.empty(n_off)
+        xv = np.empty(n_off)
+        yu = np.empty(n_off)
+        yv = np.empty(n_off)
+        zero_mean = np.empty(n_off)
+        corner = np.empty(n_off, dtype=np.uint64)
+        fxs = np.empty(n_off)
+        fys = np.empty(n_off)
+        for i in range(block * _LINE_BLOCK, min((block + 1) * _LINE_BLOCK, n_cand)):
+            pm = 0.0
+            for p in range(n_off):
+                pm += patch[i, p]
+            pm /= n_off
+            pv = 0.0
+            for p in range(n_off):
+                zero_mean[p] = patch[i, p] - pm
+                pv += zero_mean[p] ** 2
+            for p in range(n_off):
+                xu[p] = linear[i, 0, 0] * offsets[p, 0]
+                xv[p] = linear[i, 0, 1] * offsets[p, 1]
+                yu[p] = linear[i, 1, 0] * offsets[p, 0]
+                yv[p] = linear[i, 1, 1] * offsets[p, 1]
+            # Float addition is monotonic: (c + min xu) + min xv is at most every sample's
+            # (c + xu[p]) + xv[p], and alike for the other three bounds.
+            xu_lo, xu_hi = xu.min(), xu.max()
+            xv_lo, xv_hi = xv.min(), xv.max()
+            yu_lo, yu_hi = yu.min(), yu.max()
+            yv_lo, yv_hi = yv.min(), yv.max()
+            for s in range(lengths[i]):
+                for b in range(bands.shape[0]):
+                    cx = start[i, 0] + s * step[i, 0] + bands[b] * normal[i, 0]
+                    cy = start[i, 1] + s * step[i, 1] + bands[b] * normal[i, 1]
+                    sx = 0.0
+                    sxx = 0.0
+                    sxp = 0.0
+                    inside = True
+                    if ((cx + xu_lo) + xv_lo >= 0.0 and (cy + yu_lo) + yv_lo >= 0.0
+                            and (cx + xu_hi) + xv_hi <= xmax and (cy + yu_hi) + yv_hi <= ymax):
+                        # The whole patch inside (the common case): the sample positions in
+                        # one loop without tests, which vectorizes (the samples' gathers and
+                        # the ordered sums do not); indices non-negative, so unsigned, without
+                        # numba's wraparound.
+                        for p in range(n_off):
+                            x = (cx + xu[p]) + xv[p]
+                            y = (cy + yu[p]) + yv[p]
+                            x0 = min(int(x), w - 2)
+                            y0 = min(int(y), h - 2)
+                            fxs[p] = x - x0
+                            fys[p] = y - y0
+                            corner[p] = np.uint64(y0 * w + x0)
+                        for p in range(n_off):
+                            i00 = corner[p]
+                            fx = fxs[p]
+                            fy = fys[p]
+                            v = ((flat[i00] * (1.0 - fx) + flat[i00 + one] * fx) * (1.0 - fy)
+                                 + (flat[i00 + uw] * (1.0 - fx) + flat[i00 + uw + one] * fx)
+                                 * fy)
+                            sx += v
+                            sxx += v * v
+                            sxp += v * zero_mean[p]
+                    else:
+                        # Some sample may leave the target (offsets that are not a grid may
+                        # all fall inside still).
+                        for p in range(n_off):
+                            x = (cx + xu[p]) + xv[p]
+                            y = (cy + yu[p]) + yv[p]
+                            if not (x >= 0.0 and y >= 0.0 and x <= xmax and y <= ymax):
+                                inside = False
+                                break
+                            x0 = min(int(x), w - 2)
+                            y0 = min(int(y), h - 2)
+                            fx = x - x0
+                            fy = y - y0
+                            v = ((target[y0, x0] * (1.0 - fx) + target[y0, x0 + 1] * fx)
+                                 * (1.0 - fy)
+                                 + (target[y0 + 1, x0] * (1.0 - fx) + target[y0 + 1, x0 + 1] * fx)
+                                 * fy)
+                            sx += v
+                            sxx += v * v
+                            sxp += v * zero_mean[p]
+                    var = sxx - sx * sx / n_off
+                    if not inside or var <= 1e-9 or pv <= 1e-9:
+                        out[i, s, b] = -1.0
+                    else:
+                        out[i, s, b] = sxp / np.sqrt(var * pv)
 
 # Points per block of :func:`template_peaks`: a thread's scratch arrays are allocated once per
 # block, not once per point.
