@@ -1,4 +1,7 @@
-"""Compiled inner loops (numba): the fill rule, per-triangle histograms and the warp.
+"""Compiled inner loops (numba): the fill rule, per-triangle histograms and the warp; and the
+matchers' loops over points: correlation surfaces and their peaks (:func:`template_peaks`),
+correlation along epipolar lines (:func:`line_correlation`) and the thinning of corners
+(:func:`spaced`).
 
 These are the hot paths of pwlreg. Each loops over the pixels of each triangle once, computing
 the affine map, the bilinear sample and the histogram bin on the fly, so no per-pixel array is
@@ -8,7 +11,7 @@ is what lets the greedy search re-score a quad after every swap cheaply. Callers
 vertices are int64 fixed-point coordinates (``SUBPIXEL`` units per pixel), pixel ``(x, y)`` is
 the centre of column ``x``, row ``y``.
 
-The fill rule lives in :func:`row_span` alone; every kernel calls it.
+The fill rule lives in :func:`row_span` alone; every triangle kernel calls it.
 """
 
 from __future__ import annotations
@@ -849,3 +852,44 @@ def template_peaks(ref, warped, corners, windows, size, radius, min_std, best, s
             _correlations(win, tpl, offsets, acc)
             _normalized(acc, sums, squares, side, size, s, count * sq - s * s, surface)
             best[k], peak[k, 0], peak[k, 1], second[k] = _surface_peaks(surface, rows)
+
+
+@njit(cache=True)
+def spaced(points, distance, count):  # type: ignore[no-untyped-def]
+    """Indices of the points kept by a greedy pass in their order: a point is kept when no
+    kept one lies closer than ``distance`` (at most ``count``; OpenCV's ``goodFeaturesToTrack``
+    thins its corners so, :func:`core.refine.levels`). A grid of ``distance`` cells holds the
+    kept points, so each point looks at nine cells."""
+    n = points.shape[0]
+    keep = np.empty(n, np.int64)
+    if n == 0 or count <= 0:
+        return keep[:0]
+    x0 = points[:, 0].min()
+    y0 = points[:, 1].min()
+    cols = int((points[:, 0].max() - x0) / distance) + 1
+    rows = int((points[:, 1].max() - y0) / distance) + 1
+    head = np.full(rows * cols, -1, np.int64)
+    nxt = np.full(n, -1, np.int64)
+    d2 = distance * distance
+    kept = 0
+    for i in range(n):
+        cx = int((points[i, 0] - x0) / distance)
+        cy = int((points[i, 1] - y0) / distance)
+        good = True
+        for yy in range(max(cy - 1, 0), min(cy + 2, rows)):
+            for xx in range(max(cx - 1, 0), min(cx + 2, cols)):
+                j = head[yy * cols + xx]
+                while j >= 0 and good:
+                    dx = points[j, 0] - points[i, 0]
+                    dy = points[j, 1] - points[i, 1]
+                    if dx * dx + dy * dy < d2:
+                        good = False
+                    j = nxt[j]
+        if good:
+            nxt[i] = head[cy * cols + cx]
+            head[cy * cols + cx] = i
+            keep[kept] = i
+            kept += 1
+            if kept == count:
+                break
+    return keep[:kept]

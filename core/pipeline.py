@@ -7,6 +7,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import ConvexHull, QhullError, cKDTree
@@ -367,3 +368,11 @@ def warm_up() -> None:
         grey = levels.astype(dtype)
         for img in (grey, np.dstack([grey] * 3)):
             register(img, img, (pts, pts + 0.5), {"epipolar_filter": False})
+    # The automatic path's kernels (matching, insertion along the epipolar lines): a textured
+    # stereo pair whose halves lie at two depths.
+    rng = np.random.default_rng(0)
+    texture = cv2.resize(rng.integers(0, 256, (48, 64), dtype=np.uint8), (256, 192),
+                         interpolation=cv2.INTER_CUBIC)
+    shifted = np.concatenate([np.roll(texture, 3, axis=1)[:, :128],
+                              np.roll(texture, 9, axis=1)[:, 128:]], axis=1)
+    register(texture, shifted)

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import sampson_distance
-from pwlreg.core.kernels import line_correlation
+from pwlreg.core.kernels import line_correlation, spaced
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.reliability import neighbour_outliers, uniqueness
@@ -659,44 +659,3 @@ def _vertex(values: np.ndarray, k: np.ndarray) -> np.ndarray:
         out = np.clip(0.5 * (a - c) / den, -0.5, 0.5)
     return np.where(inner & (den < 0) & np.isfinite(out), out, 0.0)
 
-
-from numba import njit  # noqa: E402
-
-
-@njit(cache=True)
-def spaced(points, distance, count):  # type: ignore[no-untyped-def]
-    """Indices of the points kept by a greedy pass in their order: a point is kept when no
-    kept one lies closer than ``distance`` (at most ``count``)."""
-    n = points.shape[0]
-    keep = np.empty(n, np.int64)
-    if n == 0 or count <= 0:
-        return keep[:0]
-    x0 = points[:, 0].min()
-    y0 = points[:, 1].min()
-    cols = int((points[:, 0].max() - x0) / distance) + 1
-    rows = int((points[:, 1].max() - y0) / distance) + 1
-    head = np.full(rows * cols, -1, np.int64)
-    nxt = np.full(n, -1, np.int64)
-    d2 = distance * distance
-    kept = 0
-    for i in range(n):
-        cx = int((points[i, 0] - x0) / distance)
-        cy = int((points[i, 1] - y0) / distance)
-        good = True
-        for yy in range(max(cy - 1, 0), min(cy + 2, rows)):
-            for xx in range(max(cx - 1, 0), min(cx + 2, cols)):
-                j = head[yy * cols + xx]
-                while j >= 0 and good:
-                    dx = points[j, 0] - points[i, 0]
-                    dy = points[j, 1] - points[i, 1]
-                    if dx * dx + dy * dy < d2:
-                        good = False
-                    j = nxt[j]
-        if good:
-            nxt[i] = head[cy * cols + cx]
-            head[cy * cols + cx] = i
-            keep[kept] = i
-            kept += 1
-            if kept == count:
-                break
-    return keep[:kept]

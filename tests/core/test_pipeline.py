@@ -1,4 +1,6 @@
 import json
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -95,3 +97,19 @@ def test_optimizer_none_keeps_delaunay():
     assert result.search.steps == []
     np.testing.assert_array_equal(result.initial_triangles, result.final_triangles)
     assert result.search.initial_mi == result.search.final_mi > 0
+
+
+def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
+    # In a fresh process, as a worker calls it: afterwards no kernel of either path is left to
+    # compile (or to load from numba's cache) in the first job.
+    code = (
+        "from pwlreg.core import kernels\n"
+        "from pwlreg.core.pipeline import warm_up\n"
+        "warm_up()\n"
+        "names = ['line_correlation', 'template_peaks', 'spaced', 'triangle_histograms',\n"
+        "         'triangle_histograms_parallel', 'fill_spans', 'warp']\n"
+        "print(' '.join(n for n in names if not getattr(kernels, n).signatures))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=600, check=True)
+    assert out.stdout.strip() == "", f"not compiled by warm_up: {out.stdout}"

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from pwlreg.core.io import convergence_document, mesh_document
+from pwlreg.core.kernels import spaced
 from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
 from pwlreg.core.refine import (
@@ -15,7 +16,6 @@ from pwlreg.core.refine import (
     guide,
     guided_pairs,
     levels,
-    spaced,
 )
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
