@@ -233,36 +233,27 @@ def register(
     # 8 pixels mean the same on any photo, and cost a fraction of a full-resolution pass.
     level, scale = reduced(images, SCORING_SIDE, bins=SCORING_BINS)
 
-    def build(
-        ref_pts: np.ndarray, mov_pts: np.ndarray, *, guide_only: bool = False
-    ) -> tuple[Mesh, TriangulationReport]:
+    def build(ref_pts: np.ndarray, mov_pts: np.ndarray) -> tuple[Mesh, TriangulationReport]:
         extrapolated = np.zeros(len(ref_pts), bool)
         if opts.extent == "frame":
-            # A mesh that only guides the insertion extrapolates its border without choosing
-            # by agreement with the images (a third of the build's time): the insertion
-            # keeps only what the images confirm there, and the final mesh chooses.
             border_ref, border_mov = frame_vertices(
-                ref_pts, mov_pts, reference.shape[:2], images=None if guide_only else level,
-                scale=scale,
+                ref_pts, mov_pts, reference.shape[:2], images=level, scale=scale
             )
             ref_pts = np.concatenate([ref_pts, border_ref])
             mov_pts = np.concatenate([mov_pts, border_mov])
             extrapolated = np.concatenate([extrapolated, np.ones(len(border_ref), bool)])
         return initial_mesh(ref_pts, mov_pts, opts.min_triangle_area, extrapolated)
 
-    inserting = opts.insert_vertices == "always" or (
-        opts.insert_vertices == "automatic" and conjugate.source != "client"
-    )
-    # Meshes that only guide the insertion are provisional: the last one is built again in full.
-    provisional = inserting and opts.extent == "frame"
-    mesh, tri_report = build(conjugate.reference, conjugate.moving, guide_only=provisional)
+    mesh, tri_report = build(conjugate.reference, conjugate.moving)
     insertion = None
     ref_meas, mov_meas = conjugate.reference, conjugate.moving
     origin = ["client" if conjugate.source == "client" else "matched"] * len(ref_meas)
-    if inserting:
+    if opts.insert_vertices == "always" or (
+        opts.insert_vertices == "automatic" and conjugate.source != "client"
+    ):
         grey = levels(to_gray8(reference), to_gray8(moving))
         insertion = {"inserted": 0}
-        for round_ in range(INSERTION_ROUNDS):
+        for _ in range(INSERTION_ROUNDS):
             current = guide(grey, mesh.reference, mesh.moving, mesh.triangles)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
             for name, move in insertions():
@@ -281,10 +272,7 @@ def register(
                 break
             ref_meas = np.concatenate([ref_meas, new_ref])
             mov_meas = np.concatenate([mov_meas, new_mov])
-            provisional &= round_ < INSERTION_ROUNDS - 1
-            mesh, tri_report = build(ref_meas, mov_meas, guide_only=provisional)
-    if provisional:
-        mesh, tri_report = build(ref_meas, mov_meas)
+            mesh, tri_report = build(ref_meas, mov_meas)
     # Which move (or the matcher) put each vertex there: the mesh deduplicated and reordered
     # the measured pairs, and added the extrapolated border.
     _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)
