@@ -854,6 +854,22 @@ def template_peaks(ref, warped, corners, windows, size, radius, min_std, best, s
             best[k], peak[k, 0], peak[k, 1], second[k] = _surface_peaks(surface, rows)
 
 
+@njit(cache=True, inline="always")
+def _near_kept(points, i, head, nxt, cx, cy, cols, rows, d2):  # type: ignore[no-untyped-def]
+    """Whether a kept point in the cells around ``(cx, cy)`` lies closer than ``sqrt(d2)`` to
+    point ``i``; returning at the first one found is what makes the dropped points cheap."""
+    for yy in range(max(cy - 1, 0), min(cy + 2, rows)):
+        for xx in range(max(cx - 1, 0), min(cx + 2, cols)):
+            j = head[yy * cols + xx]
+            while j >= 0:
+                dx = points[j, 0] - points[i, 0]
+                dy = points[j, 1] - points[i, 1]
+                if dx * dx + dy * dy < d2:
+                    return True
+                j = nxt[j]
+    return False
+
+
 @njit(cache=True)
 def spaced(points, distance, count):  # type: ignore[no-untyped-def]
     """Indices of the points kept by a greedy pass in their order: a point is kept when no
@@ -866,26 +882,17 @@ def spaced(points, distance, count):  # type: ignore[no-untyped-def]
         return keep[:0]
     x0 = points[:, 0].min()
     y0 = points[:, 1].min()
-    cols = int((points[:, 0].max() - x0) / distance) + 1
-    rows = int((points[:, 1].max() - y0) / distance) + 1
+    inv = 1.0 / distance
+    cols = int((points[:, 0].max() - x0) * inv) + 1
+    rows = int((points[:, 1].max() - y0) * inv) + 1
     head = np.full(rows * cols, -1, np.int64)
     nxt = np.full(n, -1, np.int64)
     d2 = distance * distance
     kept = 0
     for i in range(n):
-        cx = int((points[i, 0] - x0) / distance)
-        cy = int((points[i, 1] - y0) / distance)
-        good = True
-        for yy in range(max(cy - 1, 0), min(cy + 2, rows)):
-            for xx in range(max(cx - 1, 0), min(cx + 2, cols)):
-                j = head[yy * cols + xx]
-                while j >= 0 and good:
-                    dx = points[j, 0] - points[i, 0]
-                    dy = points[j, 1] - points[i, 1]
-                    if dx * dx + dy * dy < d2:
-                        good = False
-                    j = nxt[j]
-        if good:
+        cx = int((points[i, 0] - x0) * inv)
+        cy = int((points[i, 1] - y0) * inv)
+        if not _near_kept(points, i, head, nxt, cx, cy, cols, rows, d2):
             nxt[i] = head[cy * cols + cx]
             head[cy * cols + cx] = i
             keep[kept] = i
