@@ -204,19 +204,21 @@ def choose_by_agreement(
     tris = Delaunay(ref_all).simplices
     # Where the candidates agree within a pixel there is nothing to choose.
     spread = np.linalg.norm(candidates - candidates[:1], axis=2).max(axis=0)
-    rows, ref_tris, mov_tris = [], [], []
-    for c in range(len(candidates)):
-        for v in np.flatnonzero(spread > 1.0):
-            incident = tris[np.any(tris == n + v, axis=1)]
-            if not len(incident):
-                continue
-            mov_c = mov_all.copy()
-            mov_c[n + v] = candidates[c, v]
-            ref_tris.append(ref_all[incident])
-            mov_tris.append(mov_c[incident])
-            rows.append(np.full(len(incident), c * m + v))
-    if not rows:
+    chosen = n + np.flatnonzero(spread > 1.0)
+    # Every (triangle, border vertex) incidence, in any order: the histograms are summed in
+    # integers, exactly.
+    t_idx, s_idx = np.nonzero((tris[:, :, None] == chosen[None, None, :]).any(axis=1))
+    if not len(t_idx):
         return candidates[0]
+    corners = tris[t_idx]
+    moved = corners == chosen[s_idx, None]  # one corner of each row
+    ref_tris = [ref_all[corners]] * len(candidates)
+    mov_tris, rows = [], []
+    for c in range(len(candidates)):
+        mov_c = mov_all[corners]
+        mov_c[moved] = candidates[c, chosen[s_idx] - n]
+        mov_tris.append(mov_c)
+        rows.append(c * m + chosen[s_idx] - n)
     hist, _ = triangle_statistics(images, np.concatenate(ref_tris), np.concatenate(mov_tris))
     owner = np.concatenate(rows)
     summed = np.zeros((len(candidates) * m, hist.shape[1]), dtype=np.int64)
