@@ -86,7 +86,7 @@ def local_affine_extrapolation(
     Y = mov[nb]
     for _ in range(2):
         A = weighted_affine(X, Y, weight, ridge=1e-9)
-        miss = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+        miss = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
         limit = 3.0 * np.median(miss, axis=1, keepdims=True) + 0.5
         weight = np.where(miss <= limit, weight, 0.0)
     # The target sits at the origin of its own fit: its position is the constant term.

@@ -327,7 +327,7 @@ class _LocalFits:
 
     def predict(self, points: np.ndarray) -> np.ndarray:
         xs = np.concatenate([points - self.centre, np.ones((len(points), 1))], axis=1)
-        return np.einsum("ni,nij->nj", xs, self.A)
+        return np.matmul(xs[:, None, :], self.A)[:, 0]
 
 
 def _local_fits(
@@ -360,11 +360,11 @@ def _local_fits(
     weight = near.astype(np.float64)
     for _ in range(2):
         A = weighted_affine(X, Y, weight)
-        res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+        res = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
         spread = _masked_median(res, near)[:, None]
         weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
     A = weighted_affine(X, Y, weight)
-    res = np.linalg.norm(np.einsum("nki,nij->nkj", X, A) - Y, axis=2)
+    res = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
     return _LocalFits(A, centre, nb, near, near.sum(axis=1) >= 5, _masked_median(res, near))
 
 
@@ -385,6 +385,6 @@ def weighted_affine(
     ones, ``Y`` (n, k, 2), ``weight`` (n, k); ``A`` of shape (n, 3, 2). ``ridge`` keeps a fit
     with too few weighted points solvable."""
     Xw = X * weight[:, :, None]
-    XtX = np.einsum("nki,nkj->nij", Xw, X) + ridge * np.eye(3)
-    XtY = np.einsum("nki,nkj->nij", Xw, Y)
+    XtX = np.matmul(Xw.transpose(0, 2, 1), X) + ridge * np.eye(3)
+    XtY = np.matmul(Xw.transpose(0, 2, 1), Y)
     return np.linalg.solve(XtX, XtY)
