@@ -874,7 +874,7 @@ def _near_kept(points, i, head, nxt, cx, cy, cols, rows, d2):  # type: ignore[no
 def spaced(points, distance, count):  # type: ignore[no-untyped-def]
     """Indices of the points kept by a greedy pass in their order: a point is kept when no
     kept one lies closer than ``distance`` (at most ``count``; OpenCV's ``goodFeaturesToTrack``
-    thins its corners so, :func:`core.refine.levels`). A grid of ``distance`` cells holds the
+    chooses its corners so; :func:`core.refine.levels`). A grid of ``distance`` cells holds the
     kept points, so each point looks at nine cells."""
     n = points.shape[0]
     keep = np.empty(n, np.int64)
