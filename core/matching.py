@@ -49,6 +49,7 @@ import numpy as np
 from pwlreg.core.epipolar import MIN_PAIRS, EpipolarModel, estimate_fundamental
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.imaging import check_image, to_gray8
+from pwlreg.core.kernels import spaced
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
 
@@ -682,30 +683,8 @@ def _min_distance_greedy(points: np.ndarray, order: np.ndarray, min_distance: fl
         # Only exact duplicates go.
         _, first = np.unique(points[order], axis=0, return_index=True)
         return order[np.sort(first)]
-    cell = float(min_distance)
-    keys = np.floor(points / cell).astype(np.int64)
-    grid: dict[tuple[int, int], list[int]] = {}
-    kept: list[int] = []
-    d2min = min_distance * min_distance
-    for i in order.tolist():
-        cx, cy = int(keys[i, 0]), int(keys[i, 1])
-        px, py = points[i]
-        close = False
-        for gx in (cx - 1, cx, cx + 1):
-            for gy in (cy - 1, cy, cy + 1):
-                for j in grid.get((gx, gy), ()):
-                    dx, dy = points[j, 0] - px, points[j, 1] - py
-                    if dx * dx + dy * dy < d2min:
-                        close = True
-                        break
-                if close:
-                    break
-            if close:
-                break
-        if not close:
-            kept.append(i)
-            grid.setdefault((cx, cy), []).append(i)
-    return np.array(kept, dtype=np.intp)
+    ordered = np.ascontiguousarray(points[order], dtype=np.float64)
+    return order[spaced(ordered, float(min_distance), len(order))].astype(np.intp)
 
 
 # --- the filter and the entry point ---------------------------------------------------------------

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from pwlreg.core.raster import fixed_point, quantize
+from pwlreg.core.raster import cross_fixed, fixed_point, quantize
 
 Edge = tuple[int, int]
 
@@ -29,18 +29,6 @@ def orient_fixed(p: tuple[int, int], q: tuple[int, int], r: tuple[int, int]) -> 
     """Exact orientation sign of fixed-point points (Python ints: fast for single tests)."""
     cross = (q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0])
     return (cross > 0) - (cross < 0)
-
-
-def cross_fixed(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """Twice the signed areas of fixed-point triangles ``(p, q, r)``, ``(..., 2)`` int64 each.
-
-    Exact (its sign is :func:`orient_fixed`'s) for coordinates within :data:`MAX_COORDINATE`:
-    twice the area of a triangle in a square of side ``2 * MAX_COORDINATE * SUBPIXEL = 2**31``
-    is at most ``2**62``.
-    """
-    return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
-        r[..., 0] - p[..., 0]
-    )
 
 
 def edge_key(i: int, j: int) -> Edge:

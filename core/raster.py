@@ -39,17 +39,25 @@ def fixed_point(points: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(points, dtype=np.float64) * SUBPIXEL + 0.5).astype(np.int64)
 
 
+def cross_fixed(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Twice the signed areas of fixed-point triangles ``(p, q, r)`` (:func:`fixed_point`),
+    ``(..., 2)`` int64 each.
+
+    Exact for coordinates within ``core.mesh.MAX_COORDINATE``: twice the area of a triangle in
+    a square of side ``2 * MAX_COORDINATE * SUBPIXEL = 2**31`` is at most ``2**62``.
+    """
+    return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (
+        r[..., 0] - p[..., 0]
+    )
+
+
 def orientation(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Exact sign (-1, 0, +1) of the signed area of triangles ``(a, b, c)``.
 
     ``a``, ``b``, ``c`` are ``(..., 2)`` arrays of quantized pixel coordinates. In image axes
     (y down) a positive sign means the vertices turn clockwise on screen.
     """
-    a, b, c = fixed_point(a), fixed_point(b), fixed_point(c)
-    cross = (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (
-        c[..., 0] - a[..., 0]
-    )
-    return np.sign(cross).astype(np.int8)
+    return np.sign(cross_fixed(fixed_point(a), fixed_point(b), fixed_point(c))).astype(np.int8)
 
 
 def triangle_areas(tri_xy: np.ndarray) -> np.ndarray:
