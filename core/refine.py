@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import sampson_distance
+from pwlreg.core.flow import residual_flows
 from pwlreg.core.kernels import line_correlation, spaced
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
@@ -34,12 +35,6 @@ from pwlreg.core.warp import piecewise_map
 
 #: Longer side (pixels) of the level the residual flow is measured on.
 REFINE_SIDE = 2048
-
-#: Longest side (pixels) of the finest scale of the residual flow. DIS's medium preset stops at
-#: half the level's side: on the 1024x682 facade level 22.5 ms a pass, against 5-7 ms at a
-#: quarter, for the same result (synthetic 1024x768 scenes, seeds 1-2, 19 cases: mean endpoint
-#: error 13.55 px at half the side, 13.53 px at a quarter; 1083 and 1072 pairs inserted).
-FLOW_SIDE = 320
 
 #: Largest forward-backward disagreement (pixels of the level) of the residual flow.
 FB_PX = 0.5
@@ -180,15 +175,6 @@ def guide(
                  np.where(inside, map_y, -1.0).astype(np.float32), label)
 
 
-def flow_scale(shape: tuple[int, ...]) -> int:
-    """DIS's finest scale (a power of two, at least one as in its medium preset) that brings
-    an image of ``shape`` to at most :data:`FLOW_SIDE` pixels a side."""
-    scale = 1
-    while max(shape[:2]) / 2**scale > FLOW_SIDE:
-        scale += 1
-    return scale
-
-
 def _to_level(points: np.ndarray, scale: float) -> np.ndarray:
     return (points + 0.5) * scale - 0.5
 
@@ -244,10 +230,7 @@ def guided_pairs(
     map_x, map_y, inside = mesh.map_x, mesh.map_y, mesh.label >= 0
     registered = cv2.remap(mov_l, map_x, map_y, cv2.INTER_LINEAR,
                            borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    dis.setFinestScale(flow_scale(ref_l.shape))
-    forward = dis.calc(ref_l, registered, None)
-    backward = dis.calc(registered, ref_l, None)
+    forward, backward = residual_flows(ref_l, registered)
 
     spacing = np.sqrt(h * w / max(measured, 1)) * scale  # pixels of the level
     points = _corners(mesh.levels, measured)

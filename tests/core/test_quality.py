@@ -5,8 +5,9 @@ import pytest
 
 from pwlreg.core.errors import UnreliableResultError
 from pwlreg.core.pipeline import register
-from pwlreg.core.quality import peak_scores
+from pwlreg.core.quality import peak_scores, residual_share
 from pwlreg.core.similarity import prepare_images
+from pwlreg.core.triangulation import delaunay_triangles
 from tests.core.synthetic import book_map, open_book, texture
 
 
@@ -77,3 +78,32 @@ def test_coverages_are_shares_of_the_full_frame_on_a_large_image():
     assert 0.2 < f["measured_coverage"] < 0.6
     assert f["measured_coverage"] + f["extrapolated_coverage"] == pytest.approx(
         f["mesh_coverage"])
+
+
+def _book_mesh(xs: list[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vertices on the true map of the open book (crease at 120) at columns ``xs``."""
+    ref = np.array([(x, y) for x in xs for y in (2.0, 50.0, 100.0, 150.0, 197.0)])
+    mov = np.stack(book_map(ref[:, 0], ref[:, 1], 120.0), axis=1)
+    return ref, mov, delaunay_triangles(ref)
+
+
+def test_the_residual_flow_finds_the_part_of_a_mesh_across_a_fold_that_is_off():
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
+    images = prepare_images(reference, moving, 16)
+    ref, mov, tris = _book_mesh([2.0, 60.0, 120.0, 180.0, 237.0])  # a column on the crease
+    right = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
+    # Only the outer columns: the triangles span the fold, 17 px off at the crease.
+    ref, mov, tris = _book_mesh([2.0, 20.0, 220.0, 237.0])
+    across = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
+    assert right < 0.05
+    assert across > 0.4
+
+
+def test_a_mesh_whose_triangles_span_an_unseen_fold_is_not_good():
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
+    ref, mov, _ = _book_mesh([2.0, 8.0, 14.0, 20.0, 220.0, 226.0, 232.0, 237.0])
+    r = register(reference, moving, (ref, mov),
+                 {"optimizer": "none", "epipolar_filter": False, "extent": "hull"})
+    assert r.quality.figures["residual_share"] > 0.25
+    assert r.quality.verdict != "good"
+    assert any("residual optical flow" in reason for reason in r.quality.reasons)

@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pwlreg.core.flow import flow_scale
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.kernels import spaced
 from pwlreg.core.moves import MOVES, insertions
@@ -12,7 +13,6 @@ from pwlreg.core.refine import (
     CORNER_QUALITY,
     MIN_SPACING,
     epipolar_pairs,
-    flow_scale,
     guide,
     guided_pairs,
     levels,

@@ -1,0 +1,50 @@
+"""The residual optical flow of a registration: what is left between the reference and the
+moving image resampled by a mesh (the *registered* image).
+
+Where the mesh is right the two differ by little, a small motion that a dense optical flow
+(OpenCV's DIS) measures well even on wide-baseline pairs where it fails on the raw images. The
+vertex insertion (:mod:`core.refine`) reads new pairs from it; the verdict (:mod:`core.quality`)
+measures with it how much of the mesh the images contradict.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: Longest side (pixels) of the finest scale of the residual flow. DIS's medium preset stops at
+#: half the level's side: on the 1024x682 facade level 22.5 ms a pass, against 5-7 ms at a
+#: quarter, for the same result (synthetic 1024x768 scenes, seeds 1-2, 19 cases: mean endpoint
+#: error 13.55 px at half the side, 13.53 px at a quarter; 1083 and 1072 pairs inserted).
+FLOW_SIDE = 320
+
+
+def flow_scale(shape: tuple[int, ...]) -> int:
+    """DIS's finest scale (a power of two, at least one as in its medium preset) that brings
+    an image of ``shape`` to at most :data:`FLOW_SIDE` pixels a side."""
+    scale = 1
+    while max(shape[:2]) / 2**scale > FLOW_SIDE:
+        scale += 1
+    return scale
+
+
+def residual_flows(reference: np.ndarray, registered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """DIS flow (medium preset, finest scale :func:`flow_scale`) from the reference to the
+    registered image and back: two float32 ``(H, W, 2)`` arrays of ``(dx, dy)`` pixels.
+
+    Both images are grey uint8 of the same shape.
+    """
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setFinestScale(flow_scale(reference.shape))
+    return dis.calc(reference, registered, None), dis.calc(registered, reference, None)
+
+
+def forward_backward_error(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
+    """Per pixel, how far the backward flow at the forward flow's end misses the start
+    (pixels, float32 ``(H, W)``): near 0 where the flow is trustworthy."""
+    h, w = forward.shape[:2]
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    end_x, end_y = xx + forward[..., 0], yy + forward[..., 1]
+    back = [cv2.remap(np.ascontiguousarray(backward[..., k]), end_x, end_y, cv2.INTER_LINEAR,
+                      borderMode=cv2.BORDER_REPLICATE) for k in (0, 1)]
+    return np.hypot(forward[..., 0] + back[0], forward[..., 1] + back[1])
