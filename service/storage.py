@@ -80,8 +80,9 @@ class Storage(ABC):
         published first or the job's files were removed."""
 
     @abstractmethod
-    def discard_attempts(self, job_id: str) -> None:
-        """Remove the work directories of attempts of ``job_id`` that did not publish."""
+    def discard_attempts(self, job_id: str, owner: str | None = None) -> None:
+        """Remove the work directories of attempts of ``job_id`` that did not publish: every
+        one, or only that of ``owner``'s attempt."""
 
     @abstractmethod
     def result_path(self, job_id: str, name: str) -> Path | None:
@@ -165,10 +166,13 @@ class LocalStorage(Storage):
 
     # --- results -----------------------------------------------------------------------------
 
+    def _work_path(self, job_id: str, owner: str) -> Path:
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in owner)
+        return self.jobs / job_id / f"work-{safe}"
+
     def work_dir(self, job_id: str, owner: str) -> Path:
         """A fresh directory for the results of one attempt."""
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in owner)
-        path = self.jobs / job_id / f"work-{safe}"
+        path = self._work_path(job_id, owner)
         shutil.rmtree(path, ignore_errors=True)
         path.mkdir(parents=True)
         return path
@@ -187,7 +191,10 @@ class LocalStorage(Storage):
             return False
         return True
 
-    def discard_attempts(self, job_id: str) -> None:
+    def discard_attempts(self, job_id: str, owner: str | None = None) -> None:
+        if owner is not None:
+            shutil.rmtree(self._work_path(job_id, owner), ignore_errors=True)
+            return
         for path in (self.jobs / job_id).glob("work-*"):
             if path.is_dir():
                 shutil.rmtree(path, ignore_errors=True)

@@ -304,12 +304,18 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     jlog = logging.LoggerAdapter(log, job_extra(job_id, job.owner))
     jlog.info("job %s: attempt %d started by %s", job_id, job.attempts, owner)
     reporter = ProgressReporter(context, job_id, owner)
+    lost = False  # the job turned out to be no longer ours (taken over, or dismissed)
+
+    def settle_lost() -> str:
+        nonlocal lost
+        lost = True
+        return _settle_lost(job_id, context)
 
     def fail(error: dict[str, Any], quality: dict[str, Any] | None = None) -> str:
         if store.finish(job_id, owner, JobStatus.failed, error["detail"], error, quality):
             jlog.info("job %s: failed: %s", job_id, error["detail"])
             return JobStatus.failed.value
-        return _settle_lost(job_id, context)
+        return settle_lost()
 
     try:
         with reporter.running():
@@ -338,16 +344,18 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         ):
             jlog.info("job %s: successful: %s", job_id, summary)
             return JobStatus.successful.value
-        return _settle_lost(job_id, context)
+        return settle_lost()
     except JobDismissed:
         storage.remove(job_id)
         jlog.info("job %s: stopped, dismissed by the client", job_id)
         return JobStatus.dismissed.value
     except LeaseLost:
+        lost = True
         jlog.warning("job %s: lease lost, attempt by %s abandoned", job_id, owner)
         return "skipped"
     except WorkerStopping:
-        store.release(job_id, owner, "requeued: the service was shut down while the job ran")
+        lost = not store.release(job_id, owner,
+                                 "requeued: the service was shut down while the job ran")
         jlog.info("job %s: released for the next start", job_id)
         return JobStatus.accepted.value
     except TimeLimitExceeded as exc:
@@ -379,7 +387,10 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             )
         )
     finally:
-        storage.discard_attempts(job_id)  # attempts that did not publish leave nothing behind
+        # Attempts that did not publish leave nothing behind. One whose job was taken over
+        # (its lease expired while it stalled) removes only its own: the attempt that took
+        # the job over may be writing its results in its work directory right now.
+        storage.discard_attempts(job_id, owner if lost else None)
 
 
 def _read_images(context: WorkerContext, job_id: str, files: contextlib.ExitStack

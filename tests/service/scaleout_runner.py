@@ -1,6 +1,10 @@
 """A registration function for the scale-out tests (``PWLREG_RUNNER``): the slow registration of
 :mod:`tests.service.runners`, then one line in the ledger file ``PWLREG_TEST_LEDGER`` for every
-registration that ran to completion: the digest of its reference image and the process id."""
+registration that ran to completion: the digest of its reference image and the process id.
+
+The line is written when the registration returns, before the worker stores the results and
+ends the job: a worker killed between the two leaves the line of an attempt that is run again
+(the job still ends once). The tests kill a worker only before its line is written."""
 
 from __future__ import annotations
 

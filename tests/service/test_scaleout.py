@@ -12,7 +12,7 @@ import json
 import signal
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -64,9 +64,12 @@ class Cluster:
         with psycopg.connect(self.database.replace("+psycopg", "")) as db:
             return db.execute(query).fetchall()
 
-    def kill_holder(self, timeout: float = 30.0) -> tuple[str, Worker]:
-        """SIGKILL a worker while it holds a job in its slow 'matching' (before its
-        registration completes); returns the job and the worker."""
+    def freeze_holder(
+        self, digests: Mapping[str, str], timeout: float = 30.0
+    ) -> tuple[str, str, Worker]:
+        """SIGSTOP a worker while it holds one of the jobs of ``digests`` (job id -> digest of
+        its reference image) in its slow 'matching', before its registration completes;
+        returns the job, the lease owner of the attempt and the frozen worker."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             for job_id, owner in self.rows(
@@ -75,17 +78,29 @@ class Cluster:
             ):
                 pid = int(owner.split(":")[1])  # host:pid:attempt, the pool process
                 for worker in self.workers:
-                    if pid not in worker.pids():
+                    if job_id not in digests or pid not in worker.pids():
                         continue
-                    # Frozen, it cannot finish the job between this look and the kill.
+                    # Frozen, it cannot go on between these looks and what the caller does.
+                    # The row's progress is the heartbeat's, a beat and a commit behind the
+                    # registration: under disk load the registration was seen to complete
+                    # (its ledger line written) while the row still said 8.8 %, so the
+                    # ledger decides whether it has.
                     worker.signal(signal.SIGSTOP)
                     if self.rows(f"SELECT 1 FROM jobs WHERE id = '{job_id}' AND status = "
-                                 f"'running' AND lease_owner = '{owner}' AND progress < 10"):
-                        worker.kill()
-                        return job_id, worker
+                                 f"'running' AND lease_owner = '{owner}' AND progress < 10"
+                                 ) and digests[job_id] not in self.completions():
+                        return job_id, owner, worker
                     worker.signal(signal.SIGCONT)
             time.sleep(0.05)
         raise AssertionError("no job was seen running")
+
+    def kill_holder(self, digests: Mapping[str, str], timeout: float = 30.0
+                    ) -> tuple[str, Worker]:
+        """SIGKILL a worker while it holds a job in its slow 'matching' (before its
+        registration completes, see :meth:`freeze_holder`); returns the job and the worker."""
+        job_id, _, worker = self.freeze_holder(digests, timeout)
+        worker.kill()
+        return job_id, worker
 
     def completions(self) -> list[str]:
         """Digests of the reference images of the registrations that ran to completion."""
@@ -154,23 +169,33 @@ def pairs() -> list[Pair]:
     return [make_pair(seed=100 + i) for i in range(JOBS)]
 
 
+def _digests(ids: list[str], pairs: list[Pair]) -> dict[str, str]:
+    """Job id -> what the ledger records of its registration."""
+    return {job_id: digest(read_image(pair.reference_png))
+            for job_id, pair in zip(ids, pairs, strict=True)}
+
+
 def _check_results(client: httpx.Client, ids: list[str], pairs: list[Pair]) -> None:
     """Every job successful, and its registered image is its own reference (not another's)."""
     for i, (job_id, pair) in enumerate(zip(ids, pairs, strict=True)):
-        job = client.get(f"/v1/jobs/{job_id}").json()
-        assert job["status"] == "successful", job
-        png = client.get(f"/v1/jobs/{job_id}/registered.png")
-        assert png.status_code == 200
-        registered = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED)
-        inside = registered[24:-24, 24:-24, 1] > 0
-        assert inside.mean() > 0.95
-        grey = registered[24:-24, 24:-24, 0].astype(float)
-        own = read_image(pair.reference_png)[24:-24, 24:-24]
-        other = read_image(pairs[(i + 1) % len(pairs)].reference_png)
-        assert np.abs(grey - own)[inside].mean() < 2.0
-        assert np.abs(grey - other[24:-24, 24:-24])[inside].mean() > 10.0
-        mesh = client.get(f"/v1/jobs/{job_id}/mesh").json()
-        assert len(mesh["reference_vertices"]) >= len(pair.reference_points)
+        _check_result(client, job_id, pair, pairs[(i + 1) % len(pairs)])
+
+
+def _check_result(client: httpx.Client, job_id: str, pair: Pair, other: Pair) -> None:
+    """The job successful, its registered image ``pair``'s reference, not ``other``'s."""
+    job = client.get(f"/v1/jobs/{job_id}").json()
+    assert job["status"] == "successful", job
+    png = client.get(f"/v1/jobs/{job_id}/registered.png")
+    assert png.status_code == 200
+    registered = cv2.imdecode(np.frombuffer(png.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    inside = registered[24:-24, 24:-24, 1] > 0
+    assert inside.mean() > 0.95
+    grey = registered[24:-24, 24:-24, 0].astype(float)
+    own = read_image(pair.reference_png)[24:-24, 24:-24]
+    assert np.abs(grey - own)[inside].mean() < 2.0
+    assert np.abs(grey - read_image(other.reference_png)[24:-24, 24:-24])[inside].mean() > 10.0
+    mesh = client.get(f"/v1/jobs/{job_id}/mesh").json()
+    assert len(mesh["reference_vertices"]) >= len(pair.reference_points)
 
 
 def _check_once(group: Cluster, pairs: list[Pair], victim: str, ids: list[str]) -> None:
@@ -198,7 +223,7 @@ def test_a_worker_killed_while_it_holds_a_job(
         ids = [first.json()["id"]] + [submit(client, pair).json()["id"] for pair in pairs[1:]]
         wait_for(client, ids[4], timeout=60)  # both workers at work
         # Main and pool process at once: its message stays unacknowledged in Redis.
-        victim, worker = group.kill_holder()
+        victim, worker = group.kill_holder(_digests(ids, pairs))
         survivor = next(w for w in group.workers if w is not worker)
         for job_id in ids:
             wait_for(client, job_id, timeout=90)
@@ -232,7 +257,7 @@ def test_the_api_and_a_worker_killed_mid_run(
         wait_for(client, ids[2], timeout=60)
     group.api.kill()
     # With the API down the workers go on; one of them dies while it holds a job.
-    victim, _ = group.kill_holder()
+    victim, _ = group.kill_holder(_digests(ids, pairs))
     time.sleep(float(ENV["PWLREG_LEASE_SECONDS"]))
     api = start_server(data_dir=group.data_dir, **group.env)
     group.restarts.append(api)
@@ -241,6 +266,81 @@ def test_the_api_and_a_worker_killed_mid_run(
             wait_for(client, job_id, timeout=90)
         _check_results(client, ids, pairs)
     _check_once(group, pairs, victim, ids)
+
+
+def test_a_worker_stalled_past_its_lease_leaves_the_job_to_its_successor(
+    cluster: Callable[..., Cluster], pairs: list[Pair],
+    hooks: tuple[str, list[tuple[dict[str, str], bytes]]],
+) -> None:
+    """A worker frozen (SIGSTOP, as a starved or swapping machine) past its lease while it
+    holds a job loses the job to the other worker; resumed while that one is writing the
+    results, it ends its attempt without a trace: the successor's files untouched, one
+    completion, one webhook."""
+    group = cluster(PWLREG_WEBHOOK_ALLOW="127.0.0.1", PWLREG_LEASE_SECONDS="3")
+    hook_url, received = hooks
+    with group.api.client() as client:
+        # The successor is caught writing by polling its work directory (tens of ms): a
+        # round whose look comes too late is run again with the next job.
+        for i in range(5):
+            if _stall_past_lease(group, client, pairs[i], pairs[i + 1], hook_url, received):
+                return
+    raise AssertionError("the successor was never caught writing its results")
+
+
+def _stall_past_lease(
+    group: Cluster, client: httpx.Client, pair: Pair, other: Pair, hook_url: str,
+    received: list[tuple[dict[str, str], bytes]],
+) -> bool:
+    """One round of the test above; False if the successor was not caught writing."""
+    job_id = client.post("/v1/jobs", data={"callback": hook_url}, files={
+        "reference": ("reference.png", pair.reference_png, "image/png"),
+        "moving": ("moving.png", pair.moving_png, "image/png"),
+        "points": ("points.json", pair.points_json, "application/json"),
+    }).json()["id"]
+    _, owner, stalled = group.freeze_holder(_digests([job_id], [pair]))
+    successor = next(w for w in group.workers if w is not stalled)
+    # Its heartbeat frozen too, the lease expires, the API requeues the job and the successor
+    # takes it over. Frozen before its registration completed, the stalled attempt has no
+    # work directory: the one that appears is the successor's, until it publishes.
+    folder = group.data_dir / "jobs" / job_id
+    writing: Path | None = None
+    deadline = time.monotonic() + 60
+    while writing is None and not (folder / "results").exists():
+        assert time.monotonic() < deadline, "the job was not taken over"
+        for work in folder.glob("work-*"):
+            successor.signal(signal.SIGSTOP)
+            if work.is_dir():
+                writing = work
+            else:
+                successor.signal(signal.SIGCONT)
+            break
+        time.sleep(0.001)
+    # Resumed, the stalled worker finds its lease lost and its task returns while the
+    # successor is frozen mid-write.
+    ended = stalled.log().count(": 'skipped'")
+    stalled.signal(signal.SIGCONT)
+    deadline = time.monotonic() + 30
+    while stalled.log().count(": 'skipped'") == ended:
+        assert time.monotonic() < deadline, stalled.log()[-3000:]
+        time.sleep(0.05)
+    caught = writing is not None and writing.is_dir()
+    successor.signal(signal.SIGCONT)
+    assert writing is None or caught, "the stalled worker removed its successor's results"
+    job = wait_for(client, job_id, timeout=60)
+    assert job["status"] == "successful" and job["attempts"] == 2, job
+    _check_result(client, job_id, pair, other)
+    assert f"job {job_id}: lease lost, attempt by {owner} abandoned" in stalled.log()
+    assert f"job {job_id}: successful" not in stalled.log()
+    assert successor.log().count(f"job {job_id}: successful") == 1
+    # One end, one webhook (sent by the API from the job row).
+    deadline = time.monotonic() + 10
+    while not [b for _, b in received if json.loads(b)["id"] == job_id]:
+        assert time.monotonic() < deadline, "no webhook"
+        time.sleep(0.1)
+    time.sleep(1.0)
+    [headers] = [h for h, b in received if json.loads(b)["id"] == job_id]
+    assert headers["X-Pwlreg-Event"] == "job.successful"
+    return caught
 
 
 def test_cancel_a_running_job(cluster: Callable[..., Cluster], pair: Pair) -> None:

@@ -284,6 +284,36 @@ def test_dismissal_is_not_swallowed_by_a_broad_except(context: WorkerContext, pa
     assert run_job(job_id, context) == "skipped"  # a dismissed job is never claimed again
 
 
+def test_an_attempt_taken_over_leaves_the_files_of_its_successor(
+    context: WorkerContext, pair: Pair
+) -> None:
+    """An attempt that stalled past its lease and was taken over ends without a trace: not
+    a write to the job, not a file of the attempt that took over (writing its results)."""
+    job_id = add_job(context, pair)
+    expire = update(JobRow).where(JobRow.id == job_id).values(
+        lease_expires=utcnow() - timedelta(seconds=1))
+    work: list[Path] = []
+
+    def stalled(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        # Meanwhile the lease expires and another worker takes the job over and writes.
+        while context.store.claim(job_id, "successor", 30.0) is None:
+            context.store._update(expire)  # again if a heartbeat renewed it in between
+        work.append(context.storage.work_dir(job_id, "successor"))
+        (work[0] / "mesh.json").write_text("{}")
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            progress("matching", 0.5)  # raises once the heartbeat found the lease lost
+            time.sleep(0.01)
+        raise AssertionError("the lost lease did not stop the registration")
+
+    context.runner = stalled
+    assert run_job(job_id, context) == "skipped"
+    assert (work[0] / "mesh.json").is_file()
+    job = context.store.get(job_id)
+    assert job is not None and job.status == JobStatus.running
+    assert (job.lease_owner, job.attempts, job.finished) == ("successor", 2, None)
+
+
 def test_stop_event_gives_the_job_back(context: WorkerContext, pair: Pair) -> None:
     stop = threading.Event()
     context.stop_event = stop
