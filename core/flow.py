@@ -19,23 +19,26 @@ import numpy as np
 FLOW_SIDE = 320
 
 
-def flow_scale(shape: tuple[int, ...]) -> int:
+def flow_scale(shape: tuple[int, ...], side: int = FLOW_SIDE) -> int:
     """DIS's finest scale (a power of two, at least one as in its medium preset) that brings
-    an image of ``shape`` to at most :data:`FLOW_SIDE` pixels a side."""
+    an image of ``shape`` to at most ``side`` pixels a side."""
     scale = 1
-    while max(shape[:2]) / 2**scale > FLOW_SIDE:
+    while max(shape[:2]) / 2**scale > side:
         scale += 1
     return scale
 
 
-def residual_flows(reference: np.ndarray, registered: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """DIS flow (medium preset, finest scale :func:`flow_scale`) from the reference to the
-    registered image and back: two float32 ``(H, W, 2)`` arrays of ``(dx, dy)`` pixels.
+def residual_flows(
+    reference: np.ndarray, registered: np.ndarray, *, side: int = FLOW_SIDE
+) -> tuple[np.ndarray, np.ndarray]:
+    """DIS flow (medium preset, finest scale :func:`flow_scale` for ``side``) from the
+    reference to the registered image and back: two float32 ``(H, W, 2)`` arrays of
+    ``(dx, dy)`` pixels.
 
     Both images are grey uint8 of the same shape.
     """
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    dis.setFinestScale(flow_scale(reference.shape))
+    dis.setFinestScale(flow_scale(reference.shape, side))
     return dis.calc(reference, registered, None), dis.calc(registered, reference, None)
 
 

@@ -66,6 +66,13 @@ LOW_CONSISTENCY = 0.9
 #: the largest forward-backward disagreement of a flow that is followed.
 RESIDUAL_PX, RESIDUAL_FB_PX = 2.0, 1.0
 
+#: Longest side (pixels) of the residual flow's finest scale, a quarter of the scoring level's:
+#: 7-12 ms for the two passes on 512x384 against 18-23 ms at half the side. The shares of
+#: correct results fall (0.6-4 % -> 0-2.5 %), those of results partly off mostly rise (28-40 %
+#: -> 27-46 %; 16 registrations); in python -m bench.trust one case (lshape, 2.28 px) moves
+#: back from doubtful to good.
+RESIDUAL_FLOW_SIDE = 160
+
 #: Share of the measured area the residual flow may find off (or not follow) in a ``good``
 #: result. Measured (python -m bench.trust and 47 synthetic scenes of seeds 0-3): 0-9 % on
 #: the real pairs registered correctly and under 5 % on synthetic results without a pixel
@@ -231,7 +238,7 @@ def residual_share(
                           np.where(seen, map_y, 0).astype(np.float32), cv2.INTER_LINEAR)
     # Unmapped pixels show the reference itself: no false motion at the mesh's border.
     registered = np.where(seen, resampled, reference)
-    forward, backward = residual_flows(reference, registered)
+    forward, backward = residual_flows(reference, registered, side=RESIDUAL_FLOW_SIDE)
     off = (np.hypot(forward[..., 0], forward[..., 1]) > RESIDUAL_PX) | (
         forward_backward_error(forward, backward) > RESIDUAL_FB_PX)
     return float(np.count_nonzero(off & judged)) / float(np.count_nonzero(judged))
