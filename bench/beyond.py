@@ -180,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the Middlebury whole-frame comparison with AROSICS and DIS")
     parser.add_argument("--automatic", action="store_true",
                         help="synthetic cases without points (the automatic matcher)")
+    parser.add_argument("--seeds", help="with --automatic: comma-separated scene seeds "
+                        "(default 0,1, the scenes the insertion was developed on)")
     args = parser.parse_args(argv)
     configs = CONFIGS if not args.configs else {k: CONFIGS[k] for k in args.configs.split(",")}
     kinds = set(args.kinds.split(","))
@@ -189,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
         frame_section(configs)
         return 0
     if args.automatic:
-        cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick)
+        seeds = tuple(int(v) for v in args.seeds.split(",")) if args.seeds else None
+        cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick, seeds=seeds)
                  if c.group not in ("unrelated", "partial overlap")]
     else:
         cases = [c for c in build_cases(quick=args.quick) if c.kind in kinds]

@@ -69,9 +69,10 @@ def _scene_case(group: str, family: str, seed: int, **kw: Any) -> Case:
                 lambda: make_scene(family, seed, size=SIZE, n_interior=0, supersample=2, **kw))
 
 
-def build_cases(quick: bool = False) -> list[Case]:
-    """The synthetic suite (a subset with ``quick``)."""
-    seeds = (0,) if quick else (0, 1)
+def build_cases(quick: bool = False, seeds: tuple[int, ...] | None = None) -> list[Case]:
+    """The synthetic suite (a subset with ``quick``); ``seeds`` replaces the scene seeds
+    (0 and 1, 0 with ``quick``) of every family but the unrelated pairs."""
+    seeds = seeds if seeds is not None else (0,) if quick else (0, 1)
     cases: list[Case] = []
     poly = ("box", "gable", "city") if quick else ("box", "prism", "gable", "lshape",
                                                    "open_book", "city")
