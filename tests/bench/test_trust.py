@@ -2,6 +2,7 @@
 
 import numpy as np
 
+from bench import trust
 from bench.scenes import make_scene, make_unrelated_pair
 from bench.trust import Case, _truth_at, run_case, summarize
 
@@ -39,3 +40,13 @@ def test_summary_counts_wrong_pairs_and_mostly_wrong_good_cases():
     assert s["mostly_wrong_called_good"] == 1
     assert s["unrelated_not_unreliable"] == 1
     assert s["verdicts"]["good"]["cases"] == 2
+
+
+def test_other_seeds_replace_the_scene_seeds_and_keep_the_families():
+    default = trust.build_cases()
+    other = trust.build_cases(seeds=(2, 3))
+    scenes = [c.name for c in other if c.group != "unrelated"]
+    assert scenes and all(name.endswith(("-s2", "-s3")) for name in scenes)
+    assert len(scenes) == len([c for c in default if c.group != "unrelated"])
+    assert [c.name for c in other if c.group == "unrelated"] == [
+        c.name for c in default if c.group == "unrelated"]
