@@ -227,15 +227,14 @@ def residual_share(
     shape = images.shape
     reference = to_gray8(images.reference_values.reshape(shape))
     moving = to_gray8(images.moving)
-    map_x, map_y, label = piecewise_map(reference_vertices, moving_vertices, triangles, shape)
+    map_x, map_y, label = piecewise_map(reference_vertices, moving_vertices, triangles, shape,
+                                        dtype=np.float32, outside=-1.0)
     mh, mw = moving.shape
-    with np.errstate(invalid="ignore"):
-        seen = (label >= 0) & (map_x >= 0) & (map_x <= mw - 1) & (map_y >= 0) & (map_y <= mh - 1)
+    seen = (label >= 0) & (map_x >= 0) & (map_x <= mw - 1) & (map_y >= 0) & (map_y <= mh - 1)
     judged = seen & np.asarray(measured, dtype=bool)[np.maximum(label, 0)]
     if not judged.any():
         return 1.0
-    resampled = cv2.remap(moving, np.where(seen, map_x, 0).astype(np.float32),
-                          np.where(seen, map_y, 0).astype(np.float32), cv2.INTER_LINEAR)
+    resampled = cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR)
     # Unmapped pixels show the reference itself: no false motion at the mesh's border.
     registered = np.where(seen, resampled, reference)
     forward, backward = residual_flows(reference, registered, side=RESIDUAL_FLOW_SIDE)

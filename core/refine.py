@@ -168,11 +168,9 @@ def guide(
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     scale = image_levels.scale
     map_x, map_y, label = piecewise_map(_to_level(ref_v, scale), _to_level(mov_v, scale), tris,
-                                        image_levels.reference.shape)
-    inside = label >= 0
-    return Guide(image_levels, ref_v, mov_v, tris,
-                 np.where(inside, map_x, -1.0).astype(np.float32),
-                 np.where(inside, map_y, -1.0).astype(np.float32), label)
+                                        image_levels.reference.shape, dtype=np.float32,
+                                        outside=-1.0)
+    return Guide(image_levels, ref_v, mov_v, tris, map_x, map_y, label)
 
 
 def _to_level(points: np.ndarray, scale: float) -> np.ndarray:

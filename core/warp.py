@@ -17,6 +17,9 @@ def piecewise_map(
     moving_vertices: np.ndarray,
     triangles: np.ndarray,
     shape: tuple[int, int],
+    *,
+    dtype: type = np.float64,
+    outside: float = np.nan,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Dense piecewise-affine map from the reference grid to the moving image.
 
@@ -28,11 +31,15 @@ def piecewise_map(
         Vertex indices.
     shape : (int, int)
         ``(height, width)`` of the reference grid.
+    dtype : numpy float type
+        Of the maps (float32 for ``cv2.remap``: the float64 positions rounded once).
+    outside : float
+        Value of the maps outside the mesh.
 
     Returns
     -------
-    map_x, map_y : ndarray of float64, shape (H, W)
-        Position in the moving image of each reference pixel; NaN outside the mesh.
+    map_x, map_y : ndarray of ``dtype``, shape (H, W)
+        Position in the moving image of each reference pixel; ``outside`` outside the mesh.
     label : ndarray of int32, shape (H, W)
         Index of the triangle owning each pixel, -1 outside the mesh.
     """
@@ -41,8 +48,8 @@ def piecewise_map(
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     maps = affine_maps(ref[tris], mov[tris])
     spans = rasterize(ref[tris], shape)
-    map_x = np.full(shape, np.nan)
-    map_y = np.full(shape, np.nan)
+    map_x = np.full(shape, outside, dtype=dtype)
+    map_y = np.full(shape, outside, dtype=dtype)
     label = np.full(shape, -1, dtype=np.int32)
     kernels.fill_spans(spans.triangle, spans.y, spans.x0, spans.length, maps, map_x, map_y, label)
     return map_x, map_y, label
