@@ -264,9 +264,10 @@ def test_check_scale_decides_as_the_per_point_opencv_code(monkeypatch, case):
         np.testing.assert_array_equal(dist_k, dist)
         # OpenCV sums the cross products in float32 and rounds (the kernel's sums are exact):
         # under 2e-5 on the textures here, 3e-4 (best) and 9e-4 (ratio) on the checkerboard,
-        # whose low contrast over bright squares cancels more.
+        # whose low contrast over bright squares cancels more; 1.4e-3 (ratio) with OpenCV 5.0,
+        # whose float32 sums round differently.
         np.testing.assert_allclose(best_k, best, rtol=0, atol=1e-3)
-        np.testing.assert_allclose(ratio_k, ratio, rtol=0, atol=1e-3)
+        np.testing.assert_allclose(ratio_k, ratio, rtol=0, atol=2e-3)
 
 
 @pytest.mark.parametrize("case", [*_cases(), _clean_checkerboard()], ids=lambda c: c[0])
