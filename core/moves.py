@@ -82,9 +82,8 @@ def _epipolar(mesh: Guide, search: Search) -> Insertion | None:
     if search.epipolar is None:
         return None
     return epipolar_pairs(
-        mesh, search.images, search.epipolar.matrix, added=search.added,
-        measured=search.measured, budget=search.budget, epsilon=search.epsilon,
-        epsilon_pixels=search.epsilon_pixels, threshold=search.epipolar.threshold,
+        mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
+        budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
     )
 
 

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pwlreg.core.epipolar import sampson_distance
+from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.flow import residual_flows
 from pwlreg.core.kernels import line_correlation, spaced
 from pwlreg.core.optimize import gain_thresholds
@@ -372,6 +372,13 @@ EPI_AMBIGUITY = 0.9
 #: a few hundred pairs is off by about a pixel away from them.
 EPI_BAND = 2
 
+#: Least fall of the correlation along the line on either side of a match's peak (two pixels
+#: away, or to the end of the final search window). A flatter profile is an edge, whose
+#: position along itself the patch does not measure, and the band searched across the line
+#: lets the best slide along it (a tiled floor seen at 0.08 px: such matches were 1-2 px off,
+#: diagonally, with correlations of 0.99, and fell by 0.02-0.05; the right ones by 0.09-0.29).
+EPI_SHARPNESS = 0.06
+
 #: Search margin (pixels of the level) beyond the neighbours' displacements, and the longest
 #: segment searched.
 EPI_MARGIN, EPI_LONGEST = 8, 192
@@ -391,14 +398,13 @@ LR_PX = 1.0
 def epipolar_pairs(
     mesh: Guide,
     images: ScoringImages,
-    fundamental: np.ndarray,
+    model: EpipolarModel,
     *,
     added: tuple[np.ndarray, np.ndarray],
     measured: int,
     budget: int,
     epsilon: float,
     epsilon_pixels: float,
-    threshold: float,
 ) -> Insertion:
     """New conjugate pairs matched along the epipolar lines, guided by the current mesh.
 
@@ -408,20 +414,20 @@ def epipolar_pairs(
     searched for along its epipolar line, over the segment the displacements of its
     neighbouring vertices span (a point of a piecewise-planar scene moves like one of the
     surfaces around it), with a patch shaped by the local affine map of the mesh. A match must
-    correlate well, have no rival peak along the line (repeated texture), come back to its
-    point when searched for the other way, lie within ``threshold`` of the line, not be
-    contradicted by its neighbours, and -- when it corrects the mesh by more than
-    :data:`SMALL_PX` -- raise the mutual information of the triangle it splits.
+    correlate well, peak sharply along the line (:data:`EPI_SHARPNESS`), have no rival peak
+    along it (repeated texture), come back to its point when searched for the other way, lie
+    within the model's threshold of the line, not be contradicted by its neighbours, and --
+    when it corrects the mesh by more than :data:`SMALL_PX` -- raise the mutual information of
+    the triangle it splits.
 
     Parameters
     ----------
-    fundamental : ndarray, shape (3, 3)
-        ``x_mov^T F x_ref = 0`` in pixels of the full images.
+    model : EpipolarModel
+        The matcher's epipolar geometry (``x_mov^T F x_ref = 0`` in pixels of the full images)
+        and its inlier threshold, the largest Sampson distance of a match.
     added : (ndarray, ndarray)
         Pairs ``(reference (K, 2), moving (K, 2))`` already found for this mesh (by
         :func:`guided_pairs`): new pairs keep their distance and they count as neighbours.
-    threshold : float
-        Largest Sampson distance (pixels) of a match to the epipolar geometry.
 
     The other parameters are those of :func:`guided_pairs`.
 
@@ -429,8 +435,8 @@ def epipolar_pairs(
     -------
     Insertion
     """
-    counts = {"candidates": 0, "correlated": 0, "unique": 0, "epipolar": 0, "neighbours": 0,
-              "rejected by mi": 0, "inserted": 0}
+    counts = {"candidates": 0, "correlated": 0, "peaked": 0, "unique": 0, "epipolar": 0,
+              "neighbours": 0, "rejected by mi": 0, "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
@@ -447,7 +453,7 @@ def epipolar_pairs(
     # Pixels of the level -> of the image: x = (x_l + 0.5) / scale - 0.5.
     to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
                         [0, 0, 1]])
-    F = to_full.T @ np.asarray(fundamental, dtype=np.float64) @ to_full
+    F = to_full.T @ model.matrix @ to_full
 
     # The spacing of the mesh the budget allows: a sparse mesh (a wide baseline) gets
     # candidates at the density it may reach, not at its own.
@@ -473,13 +479,7 @@ def epipolar_pairs(
 
     affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
     linear = affine[:, :, :2]
-    predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
-    # A point whose bilinear neighbourhood leaves the mesh has no prediction (the map is -1
-    # there).
-    x0, y0 = np.floor(points).astype(np.int64).T
-    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
-    unmapped = (label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0) | (label[y1, x1] < 0)
-    predicted[unmapped] = np.nan
+    predicted = _predicted(mesh, points)
     line = _lines(F, points)
     foot = _foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.
@@ -491,25 +491,27 @@ def epipolar_pairs(
     high = np.maximum(along.max(axis=1), 0.0) + EPI_MARGIN
     centre = 0.5 * (low + high)
     half_len = np.minimum(0.5 * (high - low), EPI_LONGEST / 2)
-    best_xy, best_score, rival = _search_lines(
+    best_xy, best_score, rival, sharpness = _search_lines(
         ref_l, mov_l, points, line, foot, centre - half_len, centre + half_len, linear)
     correlated = best_score >= EPI_NCC
     counts["correlated"] = int(correlated.sum())
-    unique = correlated & (rival < EPI_AMBIGUITY)
+    peaked = correlated & (sharpness >= EPI_SHARPNESS)
+    counts["peaked"] = int(peaked.sum())
+    unique = peaked & (rival < EPI_AMBIGUITY)
     # Left-right check: the match, searched for along its own epipolar line in the reference
     # near the point, must come back to it.
     idx = np.flatnonzero(unique)
     back_line = _lines(F.T, best_xy[idx])
     inverse = np.linalg.inv(linear[idx] + 1e-12 * np.eye(2))
     half = np.full(len(idx), EPI_MARGIN / 2)
-    back_xy, _, _ = _search_lines(mov_l, ref_l, best_xy[idx], back_line,
-                                  _foot(back_line, points[idx]), -half, half, inverse)
+    back_xy, _, _, _ = _search_lines(mov_l, ref_l, best_xy[idx], back_line,
+                                     _foot(back_line, points[idx]), -half, half, inverse)
     unique[idx] = np.hypot(*(back_xy - points[idx]).T) <= LR_PX
     counts["unique"] = int(unique.sum())
     reference = _from_level(points, scale)
     moving = _from_level(best_xy, scale)
     ok = unique.copy()
-    ok[unique] = sampson_distance(fundamental, reference[unique], moving[unique]) <= threshold
+    ok[unique] = model.inliers(reference[unique], moving[unique])
     counts["epipolar"] = int(ok.sum())
     # The matcher's own last check: a new pair that the local map of its neighbours (the
     # vertices and the other new pairs) contradicts, with fewer than two of them moving like
@@ -522,6 +524,19 @@ def epipolar_pairs(
     size = np.hypot(*(best_xy - predicted).T) / scale
     return _chosen(images, ref_v, mov_v, tris, reference, moving, size, ok, counts,
                    budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
+
+
+def _predicted(mesh: Guide, points: np.ndarray) -> np.ndarray:
+    """Where the mesh maps reference-level ``points`` in the moving level; NaN where their
+    bilinear neighbourhood leaves the mesh (the map is -1 there)."""
+    predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
+    lh, lw = mesh.label.shape
+    x0, y0 = np.floor(points).astype(np.int64).T
+    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
+    label = mesh.label
+    predicted[(label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0)
+              | (label[y1, x1] < 0)] = np.nan
+    return predicted
 
 
 def _lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -551,25 +566,29 @@ def _search_lines(
     low: np.ndarray,
     high: np.ndarray,
     linear: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Best match of each source point's patch along its line in ``target``.
 
     The patch (side ``2 EPI_HALF + 1``) is compared, by zero-mean normalized correlation, with
     the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps from
     ``foot + low * direction`` to ``foot + high * direction``, and up to :data:`EPI_BAND`
-    pixels off the line (:func:`core.kernels.line_correlation`). Returns the sub-pixel best
-    positions (NaN when not searched), their correlation (-1) and the ratio of the best rival
-    peak along the line (more than 3 px away) to the best.
+    pixels off the line (:func:`core.kernels.line_correlation`); over the five steps around
+    the best the full patch is compared. Returns the sub-pixel best positions (NaN when not
+    searched), their correlation (-1), the ratio of the best rival peak along the line (more
+    than 3 px away) to the best, and how much the correlation falls along the line from the
+    best in the final pass, two steps away or at the window's end, on the side where it falls
+    less (0 when not searched or when the best is at the window's end).
     """
     n = len(points)
     best_xy = np.full((n, 2), np.nan)
     best_score = np.full(n, -1.0)
     rival = np.full(n, 1.0)
+    sharpness = np.zeros(n)
     ok = (np.isfinite(low) & np.isfinite(high) & np.isfinite(foot).all(axis=1)
           & np.isfinite(linear).all(axis=(1, 2)))
     idx = np.flatnonzero(ok)
     if not len(idx):
-        return best_xy, best_score, rival
+        return best_xy, best_score, rival, sharpness
     pts = points[idx]
     normal, direction = line[idx, :2], _direction(line[idx])
     first = np.floor(low[idx])
@@ -595,10 +614,14 @@ def _search_lines(
     flat = score.reshape(len(idx), -1).argmax(axis=1)
     s, b = np.unravel_index(flat, score.shape[1:])
     best_score[idx] = score[rows, s, b]
+    # The correlation must fall on both sides of the peak, two steps away or at the window's
+    # end if nearer; a peak at the end is not one (its fall is 0).
+    sides = np.maximum(score[rows, np.maximum(s - 2, 0), b], score[rows, np.minimum(s + 2, 4), b])
+    sharpness[idx] = best_score[idx] - sides
     along = around + s + _vertex(score[rows, :, b], s)
     across = bands[b] + _vertex(score[rows, s], b)
     best_xy[idx] = foot[idx] + along[:, None] * direction + across[:, None] * normal
-    return best_xy, best_score, rival
+    return best_xy, best_score, rival, sharpness
 
 
 def _correlate(
@@ -645,3 +668,4 @@ def _vertex(values: np.ndarray, k: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.clip(0.5 * (a - c) / den, -0.5, 0.5)
     return np.where(inner & (den < 0) & np.isfinite(out), out, 0.0)
+
