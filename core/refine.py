@@ -479,7 +479,13 @@ def epipolar_pairs(
 
     affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
     linear = affine[:, :, :2]
-    predicted = _predicted(mesh, points)
+    predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
+    # A point whose bilinear neighbourhood leaves the mesh has no prediction (the map is -1
+    # there).
+    x0, y0 = np.floor(points).astype(np.int64).T
+    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
+    unmapped = (label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0) | (label[y1, x1] < 0)
+    predicted[unmapped] = np.nan
     line = _lines(F, points)
     foot = _foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.
@@ -524,19 +530,6 @@ def epipolar_pairs(
     size = np.hypot(*(best_xy - predicted).T) / scale
     return _chosen(images, ref_v, mov_v, tris, reference, moving, size, ok, counts,
                    budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
-
-
-def _predicted(mesh: Guide, points: np.ndarray) -> np.ndarray:
-    """Where the mesh maps reference-level ``points`` in the moving level; NaN where their
-    bilinear neighbourhood leaves the mesh (the map is -1 there)."""
-    predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
-    lh, lw = mesh.label.shape
-    x0, y0 = np.floor(points).astype(np.int64).T
-    x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
-    label = mesh.label
-    predicted[(label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0)
-              | (label[y1, x1] < 0)] = np.nan
-    return predicted
 
 
 def _lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -616,7 +609,9 @@ def _search_lines(
     best_score[idx] = score[rows, s, b]
     # The correlation must fall on both sides of the peak, two steps away or at the window's
     # end if nearer; a peak at the end is not one (its fall is 0).
-    sides = np.maximum(score[rows, np.maximum(s - 2, 0), b], score[rows, np.minimum(s + 2, 4), b])
+    last = score.shape[1] - 1
+    sides = np.maximum(score[rows, np.maximum(s - 2, 0), b],
+                       score[rows, np.minimum(s + 2, last), b])
     sharpness[idx] = best_score[idx] - sides
     along = around + s + _vertex(score[rows, :, b], s)
     across = bands[b] + _vertex(score[rows, s], b)
@@ -668,4 +663,3 @@ def _vertex(values: np.ndarray, k: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         out = np.clip(0.5 * (a - c) / den, -0.5, 0.5)
     return np.where(inner & (den < 0) & np.isfinite(out), out, 0.0)
-
