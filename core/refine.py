@@ -200,9 +200,11 @@ def _from_level(points: np.ndarray, scale: float) -> np.ndarray:
 
 
 def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear samples of a float32 image at ``(K, 2)`` points (pixels)."""
+    """Bilinear samples of a float32 image (one channel or more) at ``(K, 2)`` points
+    (pixels): ``(K,)`` or ``(K, C)``."""
     xy = points.astype(np.float32)
-    return cv2.remap(image, xy[:, 0:1], xy[:, 1:2], cv2.INTER_LINEAR).ravel().astype(np.float64)
+    out = cv2.remap(image, xy[:, 0:1], xy[:, 1:2], cv2.INTER_LINEAR).astype(np.float64)
+    return out.reshape(len(points), -1) if image.ndim == 3 else out.ravel()
 
 
 def guided_pairs(
@@ -260,8 +262,9 @@ def guided_pairs(
     if not len(points):
         return empty
 
-    fwd = np.column_stack([_sample(forward[..., k], points) for k in (0, 1)])
-    back = np.column_stack([_sample(backward[..., k], points + fwd) for k in (0, 1)])
+    # Both channels at once: a channel's slice would be copied whole for each call.
+    fwd = _sample(forward, points)
+    back = _sample(backward, points + fwd)
     consistent = np.hypot(*(fwd + back).T) < FB_PX
     points, residual = points[consistent], fwd[consistent]
     counts["consistent"] = len(points)

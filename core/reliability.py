@@ -172,10 +172,13 @@ def uniqueness(
     n = len(ref_pts)
     H = np.eye(3) if homography is None else np.asarray(homography, dtype=np.float64)
     h, w = ref_gray.shape
-    warped = cv2.warpPerspective(
-        mov_gray, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        borderMode=cv2.BORDER_CONSTANT, borderValue=0,
-    )
+    if homography is None and mov_gray.shape == (h, w):
+        warped = mov_gray  # what the identity warp returns, without its copy
+    else:
+        warped = cv2.warpPerspective(
+            mov_gray, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+        )
     q = np.column_stack([mov_pts, np.ones(n)]) @ np.linalg.inv(H).T
     with np.errstate(divide="ignore", invalid="ignore"):
         pred = q[:, :2] / q[:, 2:3]
