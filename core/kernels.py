@@ -173,13 +173,14 @@ def spans(tris: np.ndarray, height: int, width: int):  # type: ignore[no-untyped
     return tri[:i], ys[:i], x0[:i], length[:i]
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def fill_spans(tri, ys, x0, length, maps, map_x, map_y, label):  # type: ignore[no-untyped-def]
     """Write each run's triangle into ``label`` and, when ``maps`` (T, 2, 3) has rows, the
     triangle's affine map of every pixel into ``map_x``/``map_y`` (``m x + m y + m``, the
-    expression of :func:`core.warp.piecewise_map`)."""
+    expression of :func:`core.warp.piecewise_map`). The runs share no pixel, so threads
+    write them in any order."""
     with_maps = maps.shape[0] > 0
-    for i in range(tri.shape[0]):
+    for i in prange(tri.shape[0]):
         t = tri[i]
         y = ys[i]
         yf = float(y)
@@ -489,7 +490,53 @@ def triangle_histograms_parallel(  # type: ignore[no-untyped-def]
                             with_moments, mov_tris)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _warp_triangle(ref_tri, mov_tri, moving, out, full, mask, owned):  # type: ignore[no-untyped-def]
+    """Resample the pixels of one triangle that the fill rule (and the outer edges of ``mask``)
+    give it and no earlier pass took (``owned``); see :func:`warp`."""
+    height, width = out.shape[0], out.shape[1]
+    mh, mw, nb = moving.shape
+    colour = 3 if nb == 4 else nb
+    q = np.empty((3, 2), dtype=np.int64)
+    maps = np.empty((2, 3))
+    flip = _load_triangle(ref_tri, q)
+    if flip == 0:
+        return
+    if flip < 0:  # vertices 1 and 2 swapped: edges 0 and 2 trade places
+        mask = (mask & 2) | ((mask & 1) << 2) | ((mask >> 2) & 1)
+    _affine(ref_tri, mov_tri, maps)
+    y0, y1 = _row_range(q, height)
+    for y in range(y0, y1 + 1):
+        lo, hi = row_span(q, y, width, mask)
+        for x in range(lo, hi + 1):
+            if owned[y, x]:
+                continue
+            owned[y, x] = 1
+            mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
+            my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
+            if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
+                continue
+            xi = int(mx)
+            yi = int(my)
+            xj = min(xi + 1, mw - 1)
+            yj = min(yi + 1, mh - 1)
+            fx = mx - xi
+            fy = my - yi
+            for c in range(nb):
+                p00 = float(moving[yi, xi, c])
+                p10 = float(moving[yj, xi, c])
+                top = p00 + fx * (moving[yi, xj, c] - p00)
+                bottom = p10 + fx * (moving[yj, xj, c] - p10)
+                val = top + fy * (bottom - top) + 0.5
+                if c < colour:
+                    out[y, x, c] = val
+                else:
+                    out[y, x, colour] = min(val, full)
+            if nb != 4:
+                out[y, x, colour] = full
+
+
+@njit(cache=True, parallel=True)
 def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-untyped-def]
     """Resample ``moving`` (H', W', C) into ``out`` (H, W, C + 1) through each triangle's map.
 
@@ -500,56 +547,15 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
     ``closed[t]`` flags, bit ``e`` for the edge from vertex ``e`` to ``e + 1`` of ``ref_tris[t]``,
     the mesh's outer edges: a second pass gives the pixel centres lying exactly on them (which
     the fill rule leaves to a neighbour that does not exist on the bottom and right sides) to
-    their only triangle.
+    their only triangle. The fill rule gives every pixel to one triangle at most, so the first
+    pass runs the triangles on all threads.
     """
-    height, width = out.shape[0], out.shape[1]
-    mh, mw, nb = moving.shape
-    colour = 3 if nb == 4 else nb
-    owned = np.zeros((height, width), dtype=np.uint8)
-    q = np.empty((3, 2), dtype=np.int64)
-    maps = np.empty((2, 3))
-    for second in range(2):
-        for t in range(ref_tris.shape[0]):
-            mask = 0
-            if second:
-                if closed[t] == 0:
-                    continue
-                mask = closed[t]
-            flip = _load_triangle(ref_tris[t], q)
-            if flip == 0:
-                continue
-            if flip < 0:  # vertices 1 and 2 swapped: edges 0 and 2 trade places
-                mask = (mask & 2) | ((mask & 1) << 2) | ((mask >> 2) & 1)
-            _affine(ref_tris[t], mov_tris[t], maps)
-            y0, y1 = _row_range(q, height)
-            for y in range(y0, y1 + 1):
-                lo, hi = row_span(q, y, width, mask)
-                for x in range(lo, hi + 1):
-                    if owned[y, x]:
-                        continue
-                    owned[y, x] = 1
-                    mx = maps[0, 0] * x + maps[0, 1] * y + maps[0, 2]
-                    my = maps[1, 0] * x + maps[1, 1] * y + maps[1, 2]
-                    if not (mx >= 0.0 and my >= 0.0 and mx <= mw - 1 and my <= mh - 1):
-                        continue
-                    xi = int(mx)
-                    yi = int(my)
-                    xj = min(xi + 1, mw - 1)
-                    yj = min(yi + 1, mh - 1)
-                    fx = mx - xi
-                    fy = my - yi
-                    for c in range(nb):
-                        p00 = float(moving[yi, xi, c])
-                        p10 = float(moving[yj, xi, c])
-                        top = p00 + fx * (moving[yi, xj, c] - p00)
-                        bottom = p10 + fx * (moving[yj, xj, c] - p10)
-                        val = top + fy * (bottom - top) + 0.5
-                        if c < colour:
-                            out[y, x, c] = val
-                        else:
-                            out[y, x, colour] = min(val, full)
-                    if nb != 4:
-                        out[y, x, colour] = full
+    owned = np.zeros((out.shape[0], out.shape[1]), dtype=np.uint8)
+    for t in prange(ref_tris.shape[0]):
+        _warp_triangle(ref_tris[t], mov_tris[t], moving, out, full, 0, owned)
+    for t in range(ref_tris.shape[0]):
+        if closed[t] != 0:
+            _warp_triangle(ref_tris[t], mov_tris[t], moving, out, full, closed[t], owned)
 
 
 # Candidates per block of :func:`line_correlation`: a thread's scratch arrays are allocated once
