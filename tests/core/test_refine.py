@@ -169,12 +169,16 @@ def test_spaced_is_the_greedy_choice_in_order() -> None:
     rng = np.random.default_rng(5)
     points = rng.uniform(0, 200, (3000, 2))
     points[:50] = points[0] + rng.normal(0, 1.0, (50, 2))  # a dense cluster first
-    for distance, count in ((7.5, 10_000), (12.0, 100), (2.0, 3000)):
+    pixels = rng.integers(0, 60, (3000, 2)).astype(np.float64)  # whole pixels, as corners are
+    cases = [(points, d, c) for d, c in ((7.5, 10_000), (12.0, 100), (2.0, 3000))]
+    cases += [(pixels, d, 10_000) for d in (1.0, 2.0, 2 * np.sqrt(2), 3.0, 5.0, np.sqrt(50))]
+    for points, distance, count in cases:
         kept: list[int] = []
         for i, p in enumerate(points):
             if len(kept) == count:
                 break
-            if all(np.hypot(*(points[kept] - p).T) >= distance) if kept else True:
+            # OpenCV's rule, on squared distances (ties at whole pixels fall the same way).
+            if all(((points[kept] - p) ** 2).sum(axis=1) >= distance**2) if kept else True:
                 kept.append(i)
         assert spaced(points, distance, count).tolist() == kept
     assert spaced(points[:0], 5.0, 10).tolist() == []
