@@ -41,6 +41,7 @@ top-left pixel.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -523,7 +524,12 @@ def match_lk(
     """
     a = cv2.equalizeHist(ref_gray)
     b = cv2.equalizeHist(mov_gray)
-    H = estimate_global_prior(a, b, seed=seed) if prior is None else np.asarray(prior, float)
+    # The corners do not depend on the prior: found on a second thread while it is tracked
+    # (OpenCV lets go of the GIL; the prior's tracking keeps two cores only partly busy).
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        detected = pool.submit(detect_corners, ref_gray, max_candidates, min_distance)
+        H = estimate_global_prior(a, b, seed=seed) if prior is None else np.asarray(prior, float)
+        corners = detected.result()
     if H is None:
         H = np.eye(3)
     h, w = a.shape
@@ -538,7 +544,6 @@ def match_lk(
     )
     counts: dict[str, int] = {}
     rejected: dict[str, int] = {}
-    corners = detect_corners(ref_gray, max_candidates, min_distance)
     counts["detected"] = len(corners)
     score = np.linspace(1.0, 0.0, len(corners), endpoint=False) if len(corners) else np.empty(0)
     # Corners whose prior position falls outside the moving image cannot be tracked.
