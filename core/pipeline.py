@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -222,7 +223,14 @@ def register(
                 f"{pts[0].shape} and {pts[1].shape}",
                 "points",
             )
-    conjugate = find_conjugate_points(reference, moving, opts, pts)
+    # Given points are never refined by insertion unless asked (``insert_vertices="always"``).
+    insert = opts.insert_vertices == "always" or (
+        opts.insert_vertices == "automatic" and pts is None)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # The insertion's levels and candidate corners need only the images: made on a second
+        # thread while the pairs are matched (OpenCV lets go of the GIL).
+        made = pool.submit(levels, to_gray8(reference), to_gray8(moving)) if insert else None
+        conjugate = find_conjugate_points(reference, moving, opts, pts)
     timings["matching_s"] = time.perf_counter() - t_start
     report("matching", 1.0)
 
@@ -248,10 +256,8 @@ def register(
     insertion = None
     ref_meas, mov_meas = conjugate.reference, conjugate.moving
     origin = ["client" if conjugate.source == "client" else "matched"] * len(ref_meas)
-    if opts.insert_vertices == "always" or (
-        opts.insert_vertices == "automatic" and conjugate.source != "client"
-    ):
-        grey = levels(to_gray8(reference), to_gray8(moving))
+    if made is not None:
+        grey = made.result()
         insertion = {"inserted": 0}
         for _ in range(INSERTION_ROUNDS):
             current = guide(grey, mesh.reference, mesh.moving, mesh.triangles)
