@@ -39,9 +39,11 @@ def residual_flows(
 
     Both images are grey uint8 of the same shape.
     """
+    finest = flow_scale(reference.shape, side)
+
     def flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        dis.setFinestScale(flow_scale(reference.shape, side))
+        dis.setFinestScale(finest)
         return dis.calc(a, b, None)
 
     # OpenCV lets go of the GIL, and one flow keeps the second core only partly busy: the two
