@@ -389,20 +389,34 @@ EPI_NCC = 0.8
 #: ambiguous (repeated texture).
 EPI_AMBIGUITY = 0.9
 
-#: Distance to the line (pixels of the level) searched on each side: the epipolar geometry of
-#: a few hundred pairs is off by about a pixel away from them.
+#: Distance to the line (pixels of the level) searched on each side around the best match on
+#: the line: the epipolar geometry of a few hundred pairs is off by about a pixel away from them.
 EPI_BAND = 2
 
-#: Least fall of the correlation along the line on either side of a match's peak (two pixels
-#: away, or to the end of the final search window). A flatter profile is an edge, whose
-#: position along itself the patch does not measure, and the band searched across the line
-#: lets the best slide along it (a tiled floor seen at 0.08 px: such matches were 1-2 px off,
-#: diagonally, with correlations of 0.99, and fell by 0.02-0.05; the right ones by 0.09-0.29).
+#: Least fall of the correlation along the line on either side of a match's peak,
+#: :data:`EPI_FALL` pixels away (or to the end of the final search window). A flatter profile
+#: is an edge, whose position along itself the patch does not measure, and the band searched
+#: across the line lets the best slide along it (a tiled floor seen at 0.08 px: such matches
+#: were 1-2 px off, diagonally, with correlations of 0.99).
 EPI_SHARPNESS = 0.06
+
+#: Distance (pixels of the level) from the peak at which its fall is measured. At two pixels
+#: the broad peak of a smooth texture (a concrete roof, blurred brick) did not fall enough
+#: although its match was right: on an L-shaped building of the trust suite (seed 3), half of
+#: the right matches in triangles more than 10 px off fell by less than 0.035 there.
+EPI_FALL = 4
 
 #: Search margin (pixels of the level) beyond the neighbours' displacements, and the longest
 #: segment searched.
 EPI_MARGIN, EPI_LONGEST = 8, 192
+
+#: Least reach (pixels of the level) of the search on either side of the mesh's prediction. A
+#: surface with no vertex on it (a building whose faces the matcher missed, among pairs on the
+#: ground) moves like none of its neighbours: on an L-shaped building of the trust suite
+#: (seed 3) its matches lay 37-57 px (median, 90th percentile) from the prediction, beyond the
+#: span of the neighbours' displacements for more than half of them. The longer segment also
+#: holds more lookalikes, which the rival test (:data:`EPI_AMBIGUITY`) then rejects.
+EPI_REACH = 96
 
 #: Candidates searched per pair the budget allows (a search costs; about one in four to ten
 #: passes the checks).
@@ -514,8 +528,8 @@ def epipolar_pairs(
     near = near.reshape(len(points), -1)
     shifted = points[:, None, :] + (mov_lv - ref_lv)[near]
     along = np.einsum("ikj,ij->ik", shifted - foot[:, None, :], _direction(line))
-    low = np.minimum(along.min(axis=1), 0.0) - EPI_MARGIN
-    high = np.maximum(along.max(axis=1), 0.0) + EPI_MARGIN
+    low = np.minimum(along.min(axis=1), -EPI_REACH) - EPI_MARGIN
+    high = np.maximum(along.max(axis=1), EPI_REACH) + EPI_MARGIN
     centre = 0.5 * (low + high)
     half_len = np.minimum(0.5 * (high - low), EPI_LONGEST / 2)
     best_xy, best_score, rival, sharpness = _search_lines(
@@ -584,14 +598,15 @@ def _search_lines(
     """Best match of each source point's patch along its line in ``target``.
 
     The patch (side ``2 EPI_HALF + 1``) is compared, by zero-mean normalized correlation, with
-    the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps from
-    ``foot + low * direction`` to ``foot + high * direction``, and up to :data:`EPI_BAND`
-    pixels off the line (:func:`core.kernels.line_correlation`); over the five steps around
-    the best the full patch is compared. Returns the sub-pixel best positions (NaN when not
-    searched), their correlation (-1), the ratio of the best rival peak along the line (more
-    than 3 px away) to the best, and how much the correlation falls along the line from the
-    best in the final pass, two steps away or at the window's end, on the side where it falls
-    less (0 when not searched or when the best is at the window's end).
+    the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps on the line
+    from ``foot + low * direction`` to ``foot + high * direction``
+    (:func:`core.kernels.line_correlation`); around the best, over :data:`EPI_FALL` steps on
+    either side and up to :data:`EPI_BAND` pixels off the line, the full patch is compared.
+    Returns the sub-pixel best positions (NaN when not searched), their correlation (-1), the
+    ratio of the best rival peak along the line (more than 3 px away) to the best, and how much
+    the correlation falls along the line from the best in the final pass, :data:`EPI_FALL`
+    steps away or at the window's end, on the side where it falls less (0 when not searched or
+    when the best is at the window's end or :data:`EPI_BAND` pixels off the line).
     """
     n = len(points)
     best_xy = np.full((n, 2), np.nan)
@@ -607,8 +622,10 @@ def _search_lines(
     normal, direction = line[idx, :2], _direction(line[idx])
     first = np.floor(low[idx])
     lengths = (np.ceil(high[idx]) - first + 1).astype(np.int64)
-    # Along the whole segment with every other pixel of the patch and three bands; then the
-    # full patch and every band over the five steps around the best.
+    # Along the whole segment, on the line, with every other pixel of the patch; then the full
+    # patch and every band around the best. Off the line, the lookalikes of a long segment
+    # took the best from the right match and raised false rivals (on the trust suite's scenes
+    # of seeds 2-5, three bands there cut the median gain of the insertion from 32 to 30 %).
     score, _ = _correlate(source, target, pts, linear[idx], foot[idx] + first[:, None] * direction,
                           direction, normal, lengths, coarse=True)
     profile = score.max(axis=2)  # (K, S)
@@ -620,20 +637,23 @@ def _search_lines(
     away = np.abs(steps[None, :] - s[:, None]) > 3
     rival[idx] = np.where(away & peaks, profile, -1.0).max(axis=1) / np.maximum(best, 1e-9)
 
-    around = first + s - 2
+    around = first + s - EPI_FALL
     score, bands = _correlate(source, target, pts, linear[idx],
                               foot[idx] + around[:, None] * direction, direction, normal,
-                              np.full(len(idx), 5), coarse=False)
+                              np.full(len(idx), 2 * EPI_FALL + 1), coarse=False)
     rows = np.arange(len(idx))
     flat = score.reshape(len(idx), -1).argmax(axis=1)
     s, b = np.unravel_index(flat, score.shape[1:])
     best_score[idx] = score[rows, s, b]
-    # The correlation must fall on both sides of the peak, two steps away or at the window's
-    # end if nearer; a peak at the end is not one (its fall is 0).
+    # The correlation must fall on both sides of the peak, EPI_FALL steps away or at the
+    # window's end if nearer; a peak at the end is not one (its fall is 0).
     last = score.shape[1] - 1
-    sides = np.maximum(score[rows, np.maximum(s - 2, 0), b],
-                       score[rows, np.minimum(s + 2, last), b])
-    sharpness[idx] = best_score[idx] - sides
+    sides = np.maximum(score[rows, np.maximum(s - EPI_FALL, 0), b],
+                       score[rows, np.minimum(s + EPI_FALL, last), b])
+    # Nor is a best at the band's edge: the correlation rises on across the line, along an
+    # edge that crosses it (the line measured four pixels from the peak falls across such an
+    # edge, and the best slides along it: seen 2.8 px off on stripes crossed at 45 degrees).
+    sharpness[idx] = np.where((b == 0) | (b == len(bands) - 1), 0.0, best_score[idx] - sides)
     along = around + s + _vertex(score[rows, :, b], s)
     across = bands[b] + _vertex(score[rows, s], b)
     best_xy[idx] = foot[idx] + along[:, None] * direction + across[:, None] * normal
@@ -653,12 +673,14 @@ def _correlate(
     coarse: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Correlations ``(K, max(lengths), B)`` of the points' patches at ``start + s * direction
-    + band * normal`` (-1 beyond a point's length), and the bands."""
+    + band * normal`` (-1 beyond a point's length), and the bands: ``coarse``, every other
+    pixel of the patch and the line only, else the full patch and :data:`EPI_BAND` pixels
+    either side."""
     spacing = 2 if coarse else 1
     grid = np.arange(-EPI_HALF, EPI_HALF + 1, spacing, dtype=np.float64)
     gu, gv = np.meshgrid(grid, grid)
     offsets = np.column_stack([gu.ravel(), gv.ravel()])  # (P, 2)
-    bands = np.arange(-EPI_BAND, EPI_BAND + 1, spacing, dtype=np.float64)
+    bands = np.zeros(1) if coarse else np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
     patch = cv2.remap(
         source, (points[:, 0:1] + offsets[None, :, 0]).astype(np.float32),
         (points[:, 1:2] + offsets[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
