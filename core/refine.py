@@ -406,6 +406,14 @@ EPI_SHARPNESS = 0.06
 #: the right matches in triangles more than 10 px off fell by less than 0.035 there.
 EPI_FALL = 4
 
+#: Largest departure of a triangle's linear map from the mesh's typical one (the median of
+#: its triangles'), relative to the typical map's norm, for its map to shape the patches
+#: searched for in it. On an L-shaped building of the trust suite (seed 5) the patches shaped
+#: by the maps of triangles over its depth steps correlated with their right matches for 8 %
+#: of the candidates more than 10 px off, unwarped patches for 35 %. On the suite's scenes of
+#: seeds 2-5, 0.1, 0.15 and 0.3 gave median reductions of 34.2, 34.6 and 34.8 %.
+EPI_ODD_MAP = 0.15
+
 #: Search margin (pixels of the level) beyond the neighbours' displacements, and the longest
 #: segment searched.
 EPI_MARGIN, EPI_LONGEST = 8, 192
@@ -514,6 +522,12 @@ def epipolar_pairs(
 
     affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
     linear = affine[:, :, :2]
+    # A triangle over a depth step maps like neither surface: its map would shape the patch
+    # wrongly where a new vertex is needed most. Where it departs from the mesh's typical map,
+    # the typical one shapes the patch.
+    typical = np.median(affine_maps(ref_lv[tris], mov_lv[tris])[:, :, :2], axis=0)
+    odd = np.linalg.norm(linear - typical, axis=(1, 2)) > EPI_ODD_MAP * np.linalg.norm(typical)
+    linear = np.where(odd[:, None, None], typical, linear)
     predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
     # A point whose bilinear neighbourhood leaves the mesh has no prediction (the map is -1
     # there).
