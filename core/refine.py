@@ -406,13 +406,17 @@ EPI_SHARPNESS = 0.06
 #: the right matches in triangles more than 10 px off fell by less than 0.035 there.
 EPI_FALL = 4
 
-#: Largest departure of a triangle's linear map from the mesh's typical one (the median of
-#: its triangles'), relative to the typical map's norm, for its map to shape the patches
-#: searched for in it. On an L-shaped building of the trust suite (seed 5) the patches shaped
-#: by the maps of triangles over its depth steps correlated with their right matches for 8 %
-#: of the candidates more than 10 px off, unwarped patches for 35 %. On the suite's scenes of
-#: seeds 2-5, 0.1, 0.15 and 0.3 gave median reductions of 34.2, 34.6 and 34.8 %.
+#: Largest departure of a triangle's linear map from the typical one around a point (the
+#: median of the :data:`EPI_LOCAL_MAPS` triangles nearest to it), relative to the typical
+#: map's norm, for its map to shape the patch searched for at the point. On an L-shaped
+#: building of the trust suite (seed 5) the patches shaped by the maps of triangles over its
+#: depth steps correlated with their right matches for 8 % of the candidates more than 10 px
+#: off, unwarped patches for 35 %. One median over the whole mesh served a two-plane scene
+#: badly (an open book: neither page's map).
 EPI_ODD_MAP = 0.15
+
+#: Triangles (nearest centroids) whose maps' median is the typical map around a point.
+EPI_LOCAL_MAPS = 6
 
 #: Search margin (pixels of the level) beyond the neighbours' displacements, and the longest
 #: segment searched.
@@ -523,10 +527,14 @@ def epipolar_pairs(
     affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
     linear = affine[:, :, :2]
     # A triangle over a depth step maps like neither surface: its map would shape the patch
-    # wrongly where a new vertex is needed most. Where it departs from the mesh's typical map,
-    # the typical one shapes the patch.
-    typical = np.median(affine_maps(ref_lv[tris], mov_lv[tris])[:, :, :2], axis=0)
-    odd = np.linalg.norm(linear - typical, axis=(1, 2)) > EPI_ODD_MAP * np.linalg.norm(typical)
+    # wrongly where a new vertex is needed most. Where it departs from the typical map of the
+    # triangles around the point (their median), that one shapes the patch.
+    maps = affine_maps(ref_lv[tris], mov_lv[tris])[:, :, :2]
+    _, around = cKDTree(ref_lv[tris].mean(axis=1)).query(
+        points, k=min(EPI_LOCAL_MAPS, len(tris)))
+    typical = np.median(maps[around.reshape(len(points), -1)], axis=1)
+    odd = (np.linalg.norm(linear - typical, axis=(1, 2))
+           > EPI_ODD_MAP * np.linalg.norm(typical, axis=(1, 2)))
     linear = np.where(odd[:, None, None], typical, linear)
     predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
     # A point whose bilinear neighbourhood leaves the mesh has no prediction (the map is -1
