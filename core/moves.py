@@ -97,8 +97,9 @@ MOVES: dict[str, Move] = {
     ),
     "epipolar": Move(
         "insertion",
-        "a reference corner matched along its epipolar line within the span of its "
-        "neighbours' displacements: correlated, without a rival peak, confirmed both ways, "
+        "a reference corner matched along its epipolar line, over 96 px of the level either "
+        "side of the mesh's prediction or the span of its neighbours' displacements if wider: "
+        "correlated, peaked, without a rival peak, confirmed both ways, "
         "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
         "information of the triangle they split",
         _epipolar,
