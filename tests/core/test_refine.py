@@ -194,3 +194,42 @@ def test_shared_corners_are_what_opencv_chooses() -> None:
         direct = cv2.goodFeaturesToTrack(ref_img, 4 * vertices, CORNER_QUALITY, distance)
         chosen = grey.corners[spaced(grey.corners, distance, 4 * vertices)]
         np.testing.assert_array_equal(chosen, direct.reshape(-1, 2))
+
+
+def test_epipolar_pairs_reach_a_surface_with_no_vertex(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A block standing 20 px along the epipolar direction (-1, 1) off a flat background, with
+    # every vertex on the background: its neighbours' displacements (all zero) say nothing of
+    # it, so the search must reach beyond them and their 8 px margin (EPI_REACH). (Few of its
+    # pairs pass the mutual-information test: one vertex moves little of a triangle that
+    # large.)
+    w, h = SIZE
+    shift = 14.0  # 20 px along (-1, 1)
+    moving = open_book(SIZE, CREASE, seed=4)[1]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    block = (xs >= 120) & (xs < 200) & (ys >= 80) & (ys < 160)
+    mx, my = np.where(block, xs - shift, xs), np.where(block, ys + shift, ys)
+    reference = cv2.remap(moving, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    grid = np.array([(x, y) for x in np.linspace(4, w - 5, 7) for y in np.linspace(4, h - 5, 5)])
+    outside = ~((grid[:, 0] > 105) & (grid[:, 0] < 215) & (grid[:, 1] > 65) & (grid[:, 1] < 175))
+    # A ring just outside the block: the triangles over it hold little but the block.
+    ring = [(x, y) for x in np.linspace(115, 205, 5) for y in (75.0, 165.0)]
+    ring += [(x, y) for x in (115.0, 205.0) for y in np.linspace(97.5, 142.5, 3)]
+    ref = np.concatenate([grid[outside], ring])
+    mesh, _ = initial_mesh(ref, ref.copy(), 25.0)
+    none = np.zeros((0, 2))
+
+    def found_on_block():  # type: ignore[no-untyped-def]
+        found = epipolar_pairs(guide(levels(reference, moving), mesh.reference, mesh.moving,
+                                     mesh.triangles),
+                               prepare_images(reference, moving, 16), BOOK_MODEL,
+                               added=(none, none), measured=len(ref), budget=len(ref),
+                               epsilon=0.01, epsilon_pixels=250.0)
+        cells = np.rint(found.reference).astype(int)
+        inside = block[cells[:, 1], cells[:, 0]]
+        truth = found.reference[inside] + [-shift, shift]
+        return np.hypot(*(found.moving[inside] - truth).T)
+
+    miss = found_on_block()
+    assert len(miss) >= 3 and miss.max() < 0.5, np.sort(miss)
+    monkeypatch.setattr("pwlreg.core.refine.EPI_REACH", 0)
+    assert len(found_on_block()) == 0
