@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pwlreg.core.epipolar import EpipolarModel
-from pwlreg.core.refine import Guide, Insertion, epipolar_pairs, guided_pairs
+from pwlreg.core.refine import EPI_REACH, Guide, Insertion, epipolar_pairs, guided_pairs
 from pwlreg.core.similarity import ScoringImages
 
 
@@ -97,8 +97,9 @@ MOVES: dict[str, Move] = {
     ),
     "epipolar": Move(
         "insertion",
-        "a reference corner matched along its epipolar line, over 96 px of the level either "
-        "side of the mesh's prediction or the span of its neighbours' displacements if wider: "
+        f"a reference corner matched along its epipolar line, over {EPI_REACH} px of the level "
+        "either side of the mesh's prediction or the span of its neighbours' displacements if "
+        "wider: "
         "correlated, peaked, without a rival peak, confirmed both ways, "
         "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
         "information of the triangle they split",

@@ -524,12 +524,11 @@ def epipolar_pairs(
     if not len(points):
         return empty
 
-    affine = affine_maps(ref_lv[tris[owner]], mov_lv[tris[owner]])  # (K, 2, 3)
-    linear = affine[:, :, :2]
+    maps = affine_maps(ref_lv[tris], mov_lv[tris])[:, :, :2]  # (T, 2, 2)
+    linear = maps[owner]
     # A triangle over a depth step maps like neither surface: its map would shape the patch
     # wrongly where a new vertex is needed most. Where it departs from the typical map of the
     # triangles around the point (their median), that one shapes the patch.
-    maps = affine_maps(ref_lv[tris], mov_lv[tris])[:, :, :2]
     _, around = cKDTree(ref_lv[tris].mean(axis=1)).query(
         points, k=min(EPI_LOCAL_MAPS, len(tris)))
     typical = np.median(maps[around.reshape(len(points), -1)], axis=1)
@@ -672,8 +671,8 @@ def _search_lines(
     last = score.shape[1] - 1
     sides = np.maximum(score[rows, np.maximum(s - EPI_FALL, 0), b],
                        score[rows, np.minimum(s + EPI_FALL, last), b])
-    # Nor is a best at the band's edge: the correlation rises on across the line, along an
-    # edge that crosses it (the line measured four pixels from the peak falls across such an
+    # Nor is a best at the band's edge: the correlation may keep rising across the line, along
+    # an edge that crosses it (the line measured four pixels from the peak falls across such an
     # edge, and the best slides along it: seen 2.8 px off on stripes crossed at 45 degrees).
     sharpness[idx] = np.where((b == 0) | (b == len(bands) - 1), 0.0, best_score[idx] - sides)
     along = around + s + _vertex(score[rows, :, b], s)
