@@ -582,8 +582,9 @@ def epipolar_pairs(
     # vertices and the other new pairs) contradicts, with fewer than two of them moving like
     # it, is dropped (an occluded point matched to a lookalike on the line).
     idx = np.flatnonzero(ok)
-    contradicted = neighbour_outliers(np.concatenate([ref_v, reference[idx]]),
-                                      np.concatenate([mov_v, moving[idx]]))[len(ref_v):]
+    contradicted = neighbour_outliers(
+        np.concatenate([ref_v, reference[idx]]), np.concatenate([mov_v, moving[idx]]),
+        wanted=np.arange(len(ref_v) + len(idx)) >= len(ref_v))[len(ref_v):]
     ok[idx[contradicted]] = False
     counts["neighbours"] = int(ok.sum())
     size = np.hypot(*(best_xy - predicted).T) / scale

@@ -223,6 +223,7 @@ def neighbour_outliers(
     min_px: float = 3.0,
     factor: float = 4.0,
     rounds: int = 2,
+    wanted: np.ndarray | None = None,
 ) -> np.ndarray:
     """Pairs that the affine map of their nearest neighbours contradicts.
 
@@ -245,6 +246,10 @@ def neighbour_outliers(
         Absolute (pixels) and relative thresholds.
     rounds : int
         Passes.
+    wanted : ndarray of bool, shape (N,), optional
+        The pairs whose verdict is wanted (default all). The earlier passes judge every pair
+        (an outlier among the others is no witness in the next pass); the last judges only
+        these, and the others come out False unless an earlier pass found them.
 
     Returns
     -------
@@ -254,23 +259,29 @@ def neighbour_outliers(
     ref = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
     mov = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
     out = np.zeros(len(ref), bool)
-    for _ in range(rounds):
+    wanted = np.ones(len(ref), bool) if wanted is None else np.asarray(wanted, bool)
+    for n in range(rounds):
         idx = np.flatnonzero(~out)
         if len(idx) < 5:
             break
         r, m = ref[idx], mov[idx]
-        fit = _local_fits(r, m, r, k=k, min_px=min_px, exclude_self=True)
-        miss = np.linalg.norm(fit.predict(r) - m, axis=1)
+        # The query points are pairs of the fitted set: the nearest of each is itself.
+        query = np.arange(len(idx)) if n < rounds - 1 else np.flatnonzero(wanted[idx])
+        if not len(query):
+            break
+        fit = _local_fits(r, m, r[query], k=k, min_px=min_px, exclude_self=True)
+        miss = np.linalg.norm(fit.predict(r[query]) - m[query], axis=1)
         # Support: neighbours moving like the pair (up to a 10 % strain over their distance).
         # Points beyond a depth step have their own side's neighbours for witnesses.
         disp = m - r
-        gap = np.linalg.norm(disp[fit.nb] - disp[:, None, :], axis=2)
-        reach = np.maximum(min_px, 0.1 * np.linalg.norm(r[fit.nb] - r[:, None, :], axis=2))
+        gap = np.linalg.norm(disp[fit.nb] - disp[query, None, :], axis=2)
+        reach = np.maximum(min_px,
+                           0.1 * np.linalg.norm(r[fit.nb] - r[query, None, :], axis=2))
         support = np.count_nonzero(fit.near & (gap <= reach), axis=1)
         bad = fit.judged & (miss > min_px) & (miss > factor * fit.spread) & (support < 2)
         if not np.any(bad):
             break
-        out[idx[bad]] = True
+        out[idx[query[bad]]] = True
     return out
 
 

@@ -76,6 +76,22 @@ def test_neighbour_check_drops_a_planted_outlier_and_keeps_a_depth_step():
     assert out.sum() <= 3  # a few points right at the step at most
 
 
+def test_neighbour_check_of_some_pairs_judges_them_as_the_whole_check_does():
+    rng = np.random.default_rng(1)
+    ref = rng.uniform(0, 400, (300, 2))
+    mov = ref + [4.0, 1.0] + rng.normal(0, 0.3, ref.shape)
+    bad = rng.choice(300, 30, replace=False)
+    mov[bad] += rng.uniform(-12, 12, (30, 2))  # wrong enough that some hide each other
+    whole = neighbour_outliers(ref, mov)
+    wanted = np.zeros(300, bool)
+    wanted[200:] = True
+    some = neighbour_outliers(ref, mov, wanted=wanted)
+    assert whole[200:].sum() >= 5
+    assert np.array_equal(some[200:], whole[200:])
+    # Outside the wanted pairs only the first pass's outliers are reported.
+    assert some[:200].sum() <= whole[:200].sum()
+
+
 def test_automatic_matching_refuses_a_checkerboard_seen_off_by_a_period():
     """The failure of issue 9: a plane of consistently shifted matches passed every filter."""
     ref = _texture((480, 640), 5, period=40)
