@@ -4,18 +4,20 @@
 Registers one pair (default the facade, ``lightglue_facade``; ``city`` is the synthetic
 1024x768 perspective city scene) once, recording the arguments of every call of
 :func:`core.reliability.uniqueness` (the matcher's and the insertion's) and of
-:func:`core.kernels.line_correlation` (the insertion's epipolar search). Then times, best of
+:func:`core.kernels.strip_correlation` (the insertion's epipolar search). Then times, best of
 ``--repeat`` runs:
 
 1. ``uniqueness`` over the recorded calls;
-2. ``line_correlation`` over the recorded calls (the kernel alone);
+2. ``strip_correlation`` over the recorded calls (the kernel alone);
 3. the whole ``register()`` of the pair.
 
 With ``--rev``, each is timed side by side (alternating runs, one process) with the same
 functions of that git revision: its ``core/reliability.py`` and ``core/kernels.py`` are read
 with ``git show`` and loaded as modules (numba's cache off, so they compile here), and for the
-registration its ``uniqueness`` and ``line_correlation`` are patched into the current pipeline.
-The outputs are compared: causes of every pair, correlations bit for bit, final vertices.
+registration its ``uniqueness`` and ``strip_correlation`` are patched into the current pipeline
+(a revision without ``strip_correlation``, before 2026-11-26, has only its ``uniqueness``
+compared). The outputs are compared: causes of every pair, correlations bit for bit, final
+vertices.
 """
 
 from __future__ import annotations
@@ -75,10 +77,10 @@ def load_images(pair: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def record_calls(reference: np.ndarray, moving: np.ndarray) -> tuple[list, list]:
-    """Arguments of the uniqueness and line_correlation calls of one registration."""
+    """Arguments of the uniqueness and strip_correlation calls of one registration."""
     checks: list[tuple] = []
     lines: list[tuple] = []
-    check, line = reliability.uniqueness, refine.line_correlation
+    check, line = reliability.uniqueness, refine.strip_correlation
 
     def recorded_check(*args: Any) -> Any:
         checks.append(tuple(np.array(a) if isinstance(a, np.ndarray) else a for a in args))
@@ -94,12 +96,12 @@ def record_calls(reference: np.ndarray, moving: np.ndarray) -> tuple[list, list]
 
 
 class patched:
-    """Context: ``uniqueness`` and ``line_correlation`` replaced where the pipeline calls them."""
+    """Context: ``uniqueness`` and ``strip_correlation`` replaced where the pipeline calls them."""
 
     def __init__(self, check: Callable, line: Callable) -> None:
         self.new = (check, check, line)
         self.slots = ((matching, "uniqueness"), (refine, "uniqueness"),
-                      (refine, "line_correlation"))
+                      (refine, "strip_correlation"))
 
     def __enter__(self) -> None:
         self.old = [getattr(module, name) for module, name in self.slots]
@@ -136,17 +138,18 @@ def main(argv: list[str] | None = None) -> int:
     reference, moving = load_images(args.pair)
     checks, lines = record_calls(reference, moving)
     pairs = sum(len(c[2]) for c in checks)
-    samples = sum(int(c[7].sum()) * len(c[8]) * len(c[2]) for c in lines)
+    terms = sum(int(c[6].sum()) * len(c[7]) * c[1][0].size for c in lines)
     print(f"{args.pair}: {len(checks)} uniqueness calls ({pairs} pairs), {len(lines)} "
-          f"line_correlation calls ({samples / 1e6:.1f} M samples)")
+          f"strip_correlation calls ({terms / 1e6:.1f} M correlation terms)")
 
     sides_check = {"now": reliability.uniqueness}
-    sides_line = {"now": kernels.line_correlation}
+    sides_line = {"now": kernels.strip_correlation}
     with tempfile.TemporaryDirectory() as folder:
         if args.rev:
             old_kernels, old_reliability = load_revision(args.rev, Path(folder))
             sides_check = {args.rev: old_reliability.uniqueness, **sides_check}
-            sides_line = {args.rev: old_kernels.line_correlation, **sides_line}
+            if hasattr(old_kernels, "strip_correlation"):
+                sides_line = {args.rev: old_kernels.strip_correlation, **sides_line}
 
         causes = {name: [f(*c).cause for c in checks] for name, f in sides_check.items()}
         timed = best_times({name: (lambda f=f: [f(*c) for c in checks])
@@ -157,18 +160,18 @@ def main(argv: list[str] | None = None) -> int:
         for name, f in sides_line.items():
             outputs[name] = []
             for c in lines:
-                out = np.full_like(c[9], np.nan)
-                f(*c[:9], out)
+                out = np.full_like(c[8], np.nan)
+                f(*c[:8], out)
                 outputs[name].append(out)
         timed = best_times({name: (lambda f=f: [f(*c) for c in lines])
                             for name, f in sides_line.items()}, args.repeat)
-        report("line_correlation", timed, same_correlations(outputs, lines))
+        report("strip_correlation", timed, same_correlations(outputs, lines))
 
         results: dict[str, Any] = {}
 
         def registration(name: str) -> Callable[[], None]:
             def run() -> None:
-                with patched(sides_check[name], sides_line[name]):
+                with patched(sides_check[name], sides_line.get(name, kernels.strip_correlation)):
                     results[name] = pwlreg.register(reference, moving)
             return run
 
@@ -192,7 +195,7 @@ def same_correlations(outputs: dict[str, list], lines: list) -> str:
         return ""
     worst = 0.0
     for a, b, c in zip(first, others[0], lines, strict=True):
-        written = np.arange(a.shape[1])[None, :] < c[7][:, None]
+        written = np.arange(a.shape[1])[None, :] < c[6][:, None]
         worst = max(worst, float(np.max(np.abs(a[written] - b[written]), initial=0.0)))
     return "bit for bit identical" if worst == 0 else f"largest difference {worst:.3g}"
 

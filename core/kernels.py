@@ -1,6 +1,6 @@
 """Compiled inner loops (numba): the fill rule, per-triangle histograms and the warp; and the
 matchers' loops over points: correlation surfaces and their peaks (:func:`template_peaks`),
-correlation along epipolar lines (:func:`line_correlation`) and the thinning of corners
+correlation along epipolar lines (:func:`strip_correlation`) and the thinning of corners
 (:func:`spaced`).
 
 These are the hot paths of pwlreg. Each loops over the pixels of each triangle once, computing
@@ -558,123 +558,115 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
             _warp_triangle(ref_tris[t], mov_tris[t], moving, out, full, closed[t], owned)
 
 
-# Candidates per block of :func:`line_correlation`: a thread's scratch arrays are allocated once
-# per block, not once per candidate.
-_LINE_BLOCK = 16
+# Candidates per block of :func:`strip_correlation`: a thread's scratch arrays are allocated
+# once per block, not once per candidate.
+_STRIP_BLOCK = 16
 
 
 @njit(cache=True, parallel=True)
-def line_correlation(target, patch, offsets, start, step, normal, linear, lengths, bands,
-                     out):  # type: ignore[no-untyped-def]
+def strip_correlation(target, patch, step, start, direction, normal, lengths, bands,
+                      out):  # type: ignore[no-untyped-def]
     """Zero-mean normalized correlation of patches along lines (:func:`core.refine`).
 
-    For candidate ``i``, position ``s < lengths[i]`` and band ``b``, the target is sampled
-    (bilinear) at ``start[i] + s * step[i] + bands[b] * normal[i] + linear[i] @ offsets[p]``
-    and correlated with ``patch[i]`` (zero-mean); ``out[i, s, b]`` gets the correlation, -1
-    where a sample falls outside the target or either side is flat. Candidates are shared
-    among numba's threads in blocks (each writes its own rows).
+    Candidate ``i``'s patch ``patch[i]`` (``n x n``, ``n = 2 m + 1``) holds the source's
+    values at the lattice ``a * direction[i] + b * normal[i]`` of the *target*'s line frame,
+    ``a, b`` in ``step * (-m .. m)``. The target is sampled (bilinear) once per candidate on
+    the strip of whole steps around its line, ``start[i] + u * direction[i] + v * normal[i]``,
+    and ``out[i, s, q]`` is the correlation of the patch with the strip's values at
+    ``u = s + a``, ``v = bands[q] + b`` (``bands`` consecutive integers), for ``s <
+    lengths[i]``: -1 where a sample falls outside the target or either side is flat.
 
-    What does not depend on the position (the products of ``linear[i]`` and the offsets, the
-    patch's zero-mean values) is computed once per candidate, and the bounds once per position
-    for the whole patch; each sample is the same expression, summed in the same order, so the
-    outputs are those of the sample-by-sample loop bit for bit.
+    Each strip value serves every position and band that covers it: about ``(L + 2 m step)
+    (B + 2 m)`` samples a candidate instead of ``L B n^2`` when the target is sampled through
+    the patch's map at every position. Candidates are shared among numba's threads in blocks
+    (each writes its own rows).
     """
     h, w = target.shape
     xmax = w - 1.0
     ymax = h - 1.0
-    n_off = offsets.shape[0]
+    n = patch.shape[1]
+    reach = (n // 2) * step
+    n_bands = bands.shape[0]
     n_cand = start.shape[0]
-    flat = target.ravel()
-    uw = np.uint64(w)
-    one = np.uint64(1)
-    for block in prange((n_cand + _LINE_BLOCK - 1) // _LINE_BLOCK):
-        # The four products of linear[i] @ offsets[p], kept apart: a sample lies at
-        # (centre + first) + second, the order of the expression they replace.
-        xu = np.empty(n_off)
-        xv = np.empty(n_off)
-        yu = np.empty(n_off)
-        yv = np.empty(n_off)
-        zero_mean = np.empty(n_off)
-        corner = np.empty(n_off, dtype=np.uint64)
-        fxs = np.empty(n_off)
-        fys = np.empty(n_off)
-        for i in range(block * _LINE_BLOCK, min((block + 1) * _LINE_BLOCK, n_cand)):
+    cols = n_bands + 2 * reach
+    size = n * n
+    # The strip's columns some band and lattice column read (every other one for a single
+    # band at step 2).
+    used = np.zeros(cols, dtype=np.bool_)
+    for q in range(n_bands):
+        for jb in range(n):
+            used[q + step * jb] = True
+    rows = out.shape[1] + 2 * reach
+    for block in prange((n_cand + _STRIP_BLOCK - 1) // _STRIP_BLOCK):
+        # Column-major: a column's samples along the line are contiguous, so the sums below
+        # run over the positions in the innermost loop (each position its own accumulator:
+        # the loop vectorizes, and every sum is taken in lattice order).
+        strip = np.zeros((cols, rows))
+        inside = np.ones((cols, rows), dtype=np.bool_)
+        zero_mean = np.empty((n, n))
+        sx = np.empty(out.shape[1])
+        sxx = np.empty(out.shape[1])
+        sxp = np.empty(out.shape[1])
+        for i in range(block * _STRIP_BLOCK, min((block + 1) * _STRIP_BLOCK, n_cand)):
             pm = 0.0
-            for p in range(n_off):
-                pm += patch[i, p]
-            pm /= n_off
+            for ja in range(n):
+                for jb in range(n):
+                    pm += patch[i, ja, jb]
+            pm /= size
             pv = 0.0
-            for p in range(n_off):
-                zero_mean[p] = patch[i, p] - pm
-                pv += zero_mean[p] ** 2
-            for p in range(n_off):
-                xu[p] = linear[i, 0, 0] * offsets[p, 0]
-                xv[p] = linear[i, 0, 1] * offsets[p, 1]
-                yu[p] = linear[i, 1, 0] * offsets[p, 0]
-                yv[p] = linear[i, 1, 1] * offsets[p, 1]
-            # Float addition is monotonic: (c + min xu) + min xv is at most every sample's
-            # (c + xu[p]) + xv[p], and alike for the other three bounds.
-            xu_lo, xu_hi = xu.min(), xu.max()
-            xv_lo, xv_hi = xv.min(), xv.max()
-            yu_lo, yu_hi = yu.min(), yu.max()
-            yv_lo, yv_hi = yv.min(), yv.max()
-            for s in range(lengths[i]):
-                for b in range(bands.shape[0]):
-                    cx = start[i, 0] + s * step[i, 0] + bands[b] * normal[i, 0]
-                    cy = start[i, 1] + s * step[i, 1] + bands[b] * normal[i, 1]
-                    sx = 0.0
-                    sxx = 0.0
-                    sxp = 0.0
-                    inside = True
-                    if ((cx + xu_lo) + xv_lo >= 0.0 and (cy + yu_lo) + yv_lo >= 0.0
-                            and (cx + xu_hi) + xv_hi <= xmax and (cy + yu_hi) + yv_hi <= ymax):
-                        # The whole patch inside (the common case): the sample positions in
-                        # one loop without tests, which vectorizes (the samples' gathers and
-                        # the ordered sums do not); indices non-negative, so unsigned, without
-                        # numba's wraparound.
-                        for p in range(n_off):
-                            x = (cx + xu[p]) + xv[p]
-                            y = (cy + yu[p]) + yv[p]
-                            x0 = min(int(x), w - 2)
-                            y0 = min(int(y), h - 2)
-                            fxs[p] = x - x0
-                            fys[p] = y - y0
-                            corner[p] = np.uint64(y0 * w + x0)
-                        for p in range(n_off):
-                            i00 = corner[p]
-                            fx = fxs[p]
-                            fy = fys[p]
-                            v = ((flat[i00] * (1.0 - fx) + flat[i00 + one] * fx) * (1.0 - fy)
-                                 + (flat[i00 + uw] * (1.0 - fx) + flat[i00 + uw + one] * fx)
-                                 * fy)
-                            sx += v
-                            sxx += v * v
-                            sxp += v * zero_mean[p]
+            for ja in range(n):
+                for jb in range(n):
+                    zero_mean[ja, jb] = patch[i, ja, jb] - pm
+                    pv += zero_mean[ja, jb] ** 2
+            length = lengths[i]
+            whole = True
+            for v in range(cols):
+                if not used[v]:
+                    continue
+                across = bands[0] - reach + v
+                for u in range(length + 2 * reach):
+                    along = u - reach
+                    x = start[i, 0] + along * direction[i, 0] + across * normal[i, 0]
+                    y = start[i, 1] + along * direction[i, 1] + across * normal[i, 1]
+                    if x >= 0.0 and y >= 0.0 and x <= xmax and y <= ymax:
+                        x0 = min(int(x), w - 2)
+                        y0 = min(int(y), h - 2)
+                        fx = x - x0
+                        fy = y - y0
+                        strip[v, u] = ((target[y0, x0] * (1.0 - fx) + target[y0, x0 + 1] * fx)
+                                       * (1.0 - fy)
+                                       + (target[y0 + 1, x0] * (1.0 - fx)
+                                          + target[y0 + 1, x0 + 1] * fx) * fy)
+                        inside[v, u] = True
                     else:
-                        # Some sample may leave the target (offsets that are not a grid may
-                        # all fall inside still).
-                        for p in range(n_off):
-                            x = (cx + xu[p]) + xv[p]
-                            y = (cy + yu[p]) + yv[p]
-                            if not (x >= 0.0 and y >= 0.0 and x <= xmax and y <= ymax):
-                                inside = False
-                                break
-                            x0 = min(int(x), w - 2)
-                            y0 = min(int(y), h - 2)
-                            fx = x - x0
-                            fy = y - y0
-                            v = ((target[y0, x0] * (1.0 - fx) + target[y0, x0 + 1] * fx)
-                                 * (1.0 - fy)
-                                 + (target[y0 + 1, x0] * (1.0 - fx) + target[y0 + 1, x0 + 1] * fx)
-                                 * fy)
-                            sx += v
-                            sxx += v * v
-                            sxp += v * zero_mean[p]
-                    var = sxx - sx * sx / n_off
-                    if not inside or var <= 1e-9 or pv <= 1e-9:
-                        out[i, s, b] = -1.0
+                        strip[v, u] = 0.0
+                        inside[v, u] = False
+                        whole = False
+            for q in range(n_bands):
+                sx[:length] = 0.0
+                sxx[:length] = 0.0
+                sxp[:length] = 0.0
+                for ja in range(n):
+                    for jb in range(n):
+                        z = zero_mean[ja, jb]
+                        column = strip[q + step * jb, step * ja:step * ja + length]
+                        for s in range(length):
+                            value = column[s]
+                            sx[s] += value
+                            sxx[s] += value * value
+                            sxp[s] += value * z
+                for s in range(length):
+                    ok = True
+                    if not whole:
+                        for ja in range(n):
+                            for jb in range(n):
+                                if not inside[q + step * jb, s + step * ja]:
+                                    ok = False
+                    var = sxx[s] - sx[s] * sx[s] / size
+                    if not ok or var <= 1e-9 or pv <= 1e-9:
+                        out[i, s, q] = -1.0
                     else:
-                        out[i, s, b] = sxp / np.sqrt(var * pv)
+                        out[i, s, q] = sxp[s] / np.sqrt(var * pv)
 
 # Points per block of :func:`template_peaks`: a thread's scratch arrays are allocated once per
 # block, not once per point.

@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.flow import residual_flows
-from pwlreg.core.kernels import line_correlation, spaced
+from pwlreg.core.kernels import spaced, strip_correlation
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.reliability import neighbour_outliers, uniqueness
@@ -393,6 +393,12 @@ EPI_AMBIGUITY = 0.9
 #: the line: the epipolar geometry of a few hundred pairs is off by about a pixel away from them.
 EPI_BAND = 2
 
+#: Largest lead (correlation) of the best match off the line over the best on it for which
+#: the one on the line is taken. An edge crossing the line correlates as well all along
+#: itself, and the band searched across the line let the best slide along it (stripes crossed
+#: at 45 degrees: 1.4 px off, within the band).
+EPI_TIE = 0.01
+
 #: Least fall of the correlation along the line on either side of a match's peak,
 #: :data:`EPI_FALL` pixels away (or to the end of the final search window). A flatter profile
 #: is an edge, whose position along itself the patch does not measure, and the band searched
@@ -624,11 +630,13 @@ def _search_lines(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Best match of each source point's patch along its line in ``target``.
 
-    The patch (side ``2 EPI_HALF + 1``) is compared, by zero-mean normalized correlation, with
-    the target sampled through ``linear`` (the local 2x2 map) at whole-pixel steps on the line
-    from ``foot + low * direction`` to ``foot + high * direction``
-    (:func:`core.kernels.line_correlation`); around the best, over :data:`EPI_FALL` steps on
-    either side and up to :data:`EPI_BAND` pixels off the line, the full patch is compared.
+    The patch (a square of side ``2 EPI_HALF + 1`` along the line in the target, seen in the
+    source through ``linear``, the local 2x2 map) is compared, by zero-mean normalized
+    correlation, with the target at whole-pixel steps on the line from ``foot + low *
+    direction`` to ``foot + high * direction`` (:func:`core.kernels.strip_correlation`);
+    around the best, over :data:`EPI_FALL` steps on either side and up to :data:`EPI_BAND`
+    pixels off the line, the full patch is compared, and the best on the line is taken unless
+    one off it leads by more than :data:`EPI_TIE`.
     Returns the sub-pixel best positions (NaN when not searched), their correlation (-1), the
     ratio of the best rival peak along the line (more than 3 px away) to the best, and how much
     the correlation falls along the line from the best in the final pass, :data:`EPI_FALL`
@@ -665,8 +673,8 @@ def _search_lines(
     peaks = (profile >= padded[:, :-2]) & (profile >= padded[:, 2:])
     away = np.abs(steps[None, :] - s[:, None]) > 3
     rival[idx] = np.where(away & peaks, profile, -1.0).max(axis=1) / np.maximum(best, 1e-9)
-    # Nearly half the candidates of a real facade stop here: the final pass, which compares
-    # 3.5 times the samples per candidate, runs on the others only.
+    # Nearly half the candidates of a real facade stop here: the final pass runs on the
+    # others only.
     clear = rival[idx] < ambiguity
     idx, pts, normal, direction = idx[clear], pts[clear], normal[clear], direction[clear]
     first, s = first[clear], s[clear]
@@ -680,6 +688,12 @@ def _search_lines(
     rows = np.arange(len(idx))
     flat = score.reshape(len(idx), -1).argmax(axis=1)
     s, b = np.unravel_index(flat, score.shape[1:])
+    # Where a position on the line correlates as well, the images do not tell the two apart
+    # (an edge crossing the line correlates equally all along itself): the line decides.
+    centre = len(bands) // 2
+    on_line = score[:, :, centre].argmax(axis=1)
+    tie = score[rows, on_line, centre] >= score[rows, s, b] - EPI_TIE
+    s, b = np.where(tie, on_line, s), np.where(tie, centre, b)
     best_score[idx] = score[rows, s, b]
     # The correlation must fall on both sides of the peak, EPI_FALL steps away or at the
     # window's end if nearer; a peak at the end is not one (its fall is 0).
@@ -711,21 +725,33 @@ def _correlate(
     """Correlations ``(K, max(lengths), B)`` of the points' patches at ``start + s * direction
     + band * normal`` (-1 beyond a point's length), and the bands: ``coarse``, every other
     pixel of the patch and the line only, else the full patch and :data:`EPI_BAND` pixels
-    either side."""
+    either side.
+
+    The patch is the square of side ``2 EPI_HALF + 1`` around the line in the target, seen in
+    the source through the inverse of ``linear`` (:func:`core.kernels.strip_correlation`).
+    """
     spacing = 2 if coarse else 1
     grid = np.arange(-EPI_HALF, EPI_HALF + 1, spacing, dtype=np.float64)
-    gu, gv = np.meshgrid(grid, grid)
-    offsets = np.column_stack([gu.ravel(), gv.ravel()])  # (P, 2)
+    ga, gb = np.meshgrid(grid, grid, indexing="ij")  # along, across the line
+    frame = (ga.ravel()[None, :, None] * direction[:, None, :]
+             + gb.ravel()[None, :, None] * normal[:, None, :])  # (K, P, 2) in the target
+    # The adjugate over the determinant: a singular map gives non-finite offsets, whose
+    # samples leave the source (a flat patch, refused), not an exception.
+    det = linear[:, 0, 0] * linear[:, 1, 1] - linear[:, 0, 1] * linear[:, 1, 0]
+    adjugate = np.stack([np.stack([linear[:, 1, 1], -linear[:, 0, 1]], axis=1),
+                         np.stack([-linear[:, 1, 0], linear[:, 0, 0]], axis=1)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = adjugate / det[:, None, None]
+    offsets = np.einsum("kij,kpj->kpi", inverse, frame)
     bands = np.zeros(1) if coarse else np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
     patch = cv2.remap(
-        source, (points[:, 0:1] + offsets[None, :, 0]).astype(np.float32),
-        (points[:, 1:2] + offsets[None, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
+        source, (points[:, 0:1] + offsets[:, :, 0]).astype(np.float32),
+        (points[:, 1:2] + offsets[:, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
     score = np.empty((len(points), int(lengths.max()), len(bands)))
-    line_correlation(np.ascontiguousarray(target, dtype=np.float32),
-                     np.ascontiguousarray(patch, dtype=np.float64), offsets,
-                     np.ascontiguousarray(start), np.ascontiguousarray(direction),
-                     np.ascontiguousarray(normal), np.ascontiguousarray(linear), lengths,
-                     bands, score)
+    strip_correlation(np.ascontiguousarray(target, dtype=np.float32),
+                      patch.astype(np.float64).reshape(len(points), len(grid), len(grid)),
+                      spacing, np.ascontiguousarray(start), np.ascontiguousarray(direction),
+                      np.ascontiguousarray(normal), lengths, bands.astype(np.int64), score)
     score[np.arange(score.shape[1])[None, :] >= lengths[:, None]] = -1.0
     return score, bands
 

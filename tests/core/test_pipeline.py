@@ -106,7 +106,7 @@ def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
         "from pwlreg.core import kernels\n"
         "from pwlreg.core.pipeline import warm_up\n"
         "warm_up()\n"
-        "names = ['line_correlation', 'template_peaks', 'spaced', 'triangle_histograms',\n"
+        "names = ['strip_correlation', 'template_peaks', 'spaced', 'triangle_histograms',\n"
         "         'triangle_histograms_parallel', 'fill_spans', 'warp']\n"
         "print(' '.join(n for n in names if not getattr(kernels, n).signatures))\n"
     )

