@@ -733,20 +733,24 @@ def _correlate(
     spacing = 2 if coarse else 1
     grid = np.arange(-EPI_HALF, EPI_HALF + 1, spacing, dtype=np.float64)
     ga, gb = np.meshgrid(grid, grid, indexing="ij")  # along, across the line
-    frame = (ga.ravel()[None, :, None] * direction[:, None, :]
-             + gb.ravel()[None, :, None] * normal[:, None, :])  # (K, P, 2) in the target
-    # The adjugate over the determinant: a singular map gives non-finite offsets, whose
-    # samples leave the source (a flat patch, refused), not an exception.
+    # The lattice a * direction + b * normal of the target, seen in the source: a * u + b * v
+    # with u, v the inverse map's images of the two unit vectors. The inverse is the adjugate
+    # over the determinant: a singular map gives non-finite offsets, whose samples leave the
+    # source (a flat patch, refused), not an exception.
     det = linear[:, 0, 0] * linear[:, 1, 1] - linear[:, 0, 1] * linear[:, 1, 0]
-    adjugate = np.stack([np.stack([linear[:, 1, 1], -linear[:, 0, 1]], axis=1),
-                         np.stack([-linear[:, 1, 0], linear[:, 0, 0]], axis=1)], axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        inverse = adjugate / det[:, None, None]
-    offsets = np.einsum("kij,kpj->kpi", inverse, frame)
+        u = np.column_stack([linear[:, 1, 1] * direction[:, 0] - linear[:, 0, 1] * direction[:, 1],
+                             linear[:, 0, 0] * direction[:, 1] - linear[:, 1, 0] * direction[:, 0]]
+                            ) / det[:, None]
+        v = np.column_stack([linear[:, 1, 1] * normal[:, 0] - linear[:, 0, 1] * normal[:, 1],
+                             linear[:, 0, 0] * normal[:, 1] - linear[:, 1, 0] * normal[:, 0]]
+                            ) / det[:, None]
+    a, b = ga.ravel()[None, :], gb.ravel()[None, :]
+    off_x = a * u[:, 0:1] + b * v[:, 0:1]  # (K, P)
+    off_y = a * u[:, 1:2] + b * v[:, 1:2]
     bands = np.zeros(1) if coarse else np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
-    patch = cv2.remap(
-        source, (points[:, 0:1] + offsets[:, :, 0]).astype(np.float32),
-        (points[:, 1:2] + offsets[:, :, 1]).astype(np.float32), cv2.INTER_LINEAR)
+    patch = cv2.remap(source, (points[:, 0:1] + off_x).astype(np.float32),
+                      (points[:, 1:2] + off_y).astype(np.float32), cv2.INTER_LINEAR)
     score = np.empty((len(points), int(lengths.max()), len(bands)))
     strip_correlation(np.ascontiguousarray(target, dtype=np.float32),
                       patch.astype(np.float64).reshape(len(points), len(grid), len(grid)),
