@@ -560,8 +560,8 @@ def epipolar_pairs(
     centre = 0.5 * (low + high)
     half_len = np.minimum(0.5 * (high - low), EPI_LONGEST / 2)
     best_xy, best_score, rival, sharpness = _search_lines(
-        ref_l, mov_l, points, line, foot, centre - half_len, centre + half_len, linear,
-        ambiguity=EPI_AMBIGUITY)
+        ref_l, mov_l, points, line, foot, centre - half_len, centre + half_len,
+        _inverse(linear), ambiguity=EPI_AMBIGUITY)
     unique = rival < EPI_AMBIGUITY
     counts["unique"] = int(unique.sum())
     correlated = unique & (best_score >= EPI_NCC)
@@ -572,10 +572,9 @@ def epipolar_pairs(
     # near the point, must come back to it.
     idx = np.flatnonzero(peaked)
     back_line = _lines(F.T, best_xy[idx])
-    inverse = np.linalg.inv(linear[idx] + 1e-12 * np.eye(2))
     half = np.full(len(idx), EPI_MARGIN / 2)
     back_xy, _, _, _ = _search_lines(mov_l, ref_l, best_xy[idx], back_line,
-                                     _foot(back_line, points[idx]), -half, half, inverse)
+                                     _foot(back_line, points[idx]), -half, half, linear[idx])
     confirmed = peaked.copy()
     confirmed[idx] = np.hypot(*(back_xy - points[idx]).T) <= LR_PX
     counts["confirmed"] = int(confirmed.sum())
@@ -624,16 +623,17 @@ def _search_lines(
     foot: np.ndarray,
     low: np.ndarray,
     high: np.ndarray,
-    linear: np.ndarray,
+    to_source: np.ndarray,
     *,
     ambiguity: float = np.inf,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Best match of each source point's patch along its line in ``target``.
 
     The patch (a square of side ``2 EPI_HALF + 1`` along the line in the target, seen in the
-    source through ``linear``, the local 2x2 map) is compared, by zero-mean normalized
-    correlation, with the target at whole-pixel steps on the line from ``foot + low *
-    direction`` to ``foot + high * direction`` (:func:`core.kernels.strip_correlation`);
+    source through ``to_source``, the local 2x2 map from the target to the source) is
+    compared, by zero-mean normalized correlation, with the target at whole-pixel steps on the
+    line from ``foot + low * direction`` to ``foot + high * direction``
+    (:func:`core.kernels.strip_correlation`);
     around the best, over :data:`EPI_FALL` steps on either side and up to :data:`EPI_BAND`
     pixels off the line, the full patch is compared, and the best on the line is taken unless
     one off it leads by more than :data:`EPI_TIE`.
@@ -651,7 +651,7 @@ def _search_lines(
     rival = np.full(n, 1.0)
     sharpness = np.zeros(n)
     ok = (np.isfinite(low) & np.isfinite(high) & np.isfinite(foot).all(axis=1)
-          & np.isfinite(linear).all(axis=(1, 2)))
+          & np.isfinite(to_source).all(axis=(1, 2)))
     idx = np.flatnonzero(ok)
     if not len(idx):
         return best_xy, best_score, rival, sharpness
@@ -663,8 +663,9 @@ def _search_lines(
     # patch and every band around the best. Off the line, the lookalikes of a long segment
     # took the best from the right match and raised false rivals (on the trust suite's scenes
     # of seeds 2-5, three bands there cut the median gain of the insertion from 32 to 30 %).
-    score, _ = _correlate(source, target, pts, linear[idx], foot[idx] + first[:, None] * direction,
-                          direction, normal, lengths, coarse=True)
+    score, _ = _correlate(source, target, pts, to_source[idx],
+                          foot[idx] + first[:, None] * direction, direction, normal, lengths,
+                          coarse=True)
     profile = score.max(axis=2)  # (K, S)
     s = np.argmax(profile, axis=1)
     best = profile[np.arange(len(idx)), s]
@@ -682,7 +683,7 @@ def _search_lines(
         return best_xy, best_score, rival, sharpness
 
     around = first + s - EPI_FALL
-    score, bands = _correlate(source, target, pts, linear[idx],
+    score, bands = _correlate(source, target, pts, to_source[idx],
                               foot[idx] + around[:, None] * direction, direction, normal,
                               np.full(len(idx), 2 * EPI_FALL + 1), coarse=False)
     rows = np.arange(len(idx))
@@ -714,7 +715,7 @@ def _correlate(
     source: np.ndarray,
     target: np.ndarray,
     points: np.ndarray,
-    linear: np.ndarray,
+    to_source: np.ndarray,
     start: np.ndarray,
     direction: np.ndarray,
     normal: np.ndarray,
@@ -728,36 +729,38 @@ def _correlate(
     either side.
 
     The patch is the square of side ``2 EPI_HALF + 1`` around the line in the target, seen in
-    the source through the inverse of ``linear`` (:func:`core.kernels.strip_correlation`).
+    the source through ``to_source`` (:func:`core.kernels.strip_correlation`).
     """
     spacing = 2 if coarse else 1
     grid = np.arange(-EPI_HALF, EPI_HALF + 1, spacing, dtype=np.float64)
     ga, gb = np.meshgrid(grid, grid, indexing="ij")  # along, across the line
     # The lattice a * direction + b * normal of the target, seen in the source: a * u + b * v
-    # with u, v the inverse map's images of the two unit vectors. The inverse is the adjugate
-    # over the determinant: a singular map gives non-finite offsets, whose samples leave the
-    # source (a flat patch, refused), not an exception.
-    det = linear[:, 0, 0] * linear[:, 1, 1] - linear[:, 0, 1] * linear[:, 1, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.column_stack([linear[:, 1, 1] * direction[:, 0] - linear[:, 0, 1] * direction[:, 1],
-                             linear[:, 0, 0] * direction[:, 1] - linear[:, 1, 0] * direction[:, 0]]
-                            ) / det[:, None]
-        v = np.column_stack([linear[:, 1, 1] * normal[:, 0] - linear[:, 0, 1] * normal[:, 1],
-                             linear[:, 0, 0] * normal[:, 1] - linear[:, 1, 0] * normal[:, 0]]
-                            ) / det[:, None]
+    # with u, v the images of the two unit vectors.
+    u = np.matmul(to_source, direction[:, :, None])[:, :, 0]
+    v = np.matmul(to_source, normal[:, :, None])[:, :, 0]
     a, b = ga.ravel()[None, :], gb.ravel()[None, :]
     off_x = a * u[:, 0:1] + b * v[:, 0:1]  # (K, P)
     off_y = a * u[:, 1:2] + b * v[:, 1:2]
-    bands = np.zeros(1) if coarse else np.arange(-EPI_BAND, EPI_BAND + 1, dtype=np.float64)
+    bands = np.zeros(1, np.int64) if coarse else np.arange(-EPI_BAND, EPI_BAND + 1)
     patch = cv2.remap(source, (points[:, 0:1] + off_x).astype(np.float32),
                       (points[:, 1:2] + off_y).astype(np.float32), cv2.INTER_LINEAR)
     score = np.empty((len(points), int(lengths.max()), len(bands)))
     strip_correlation(np.ascontiguousarray(target, dtype=np.float32),
                       patch.astype(np.float64).reshape(len(points), len(grid), len(grid)),
                       spacing, np.ascontiguousarray(start), np.ascontiguousarray(direction),
-                      np.ascontiguousarray(normal), lengths, bands.astype(np.int64), score)
+                      np.ascontiguousarray(normal), lengths, bands, score)
     score[np.arange(score.shape[1])[None, :] >= lengths[:, None]] = -1.0
     return score, bands
+
+
+def _inverse(maps: np.ndarray) -> np.ndarray:
+    """Inverses of ``(K, 2, 2)`` maps, by the adjugate over the determinant: a singular map
+    gives non-finite entries (its point is not searched), not an exception."""
+    det = maps[:, 0, 0] * maps[:, 1, 1] - maps[:, 0, 1] * maps[:, 1, 0]
+    adjugate = np.stack([np.stack([maps[:, 1, 1], -maps[:, 0, 1]], axis=1),
+                         np.stack([-maps[:, 1, 0], maps[:, 0, 0]], axis=1)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return adjugate / det[:, None, None]
 
 
 def _vertex(values: np.ndarray, k: np.ndarray) -> np.ndarray:
