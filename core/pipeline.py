@@ -263,7 +263,8 @@ def register(
         grey = made.result()
         insertion = {"inserted": 0}
         for _ in range(INSERTION_ROUNDS):
-            current = guide(grey, mesh.reference, mesh.moving, mesh.triangles)
+            current = guide(grey, mesh.reference, mesh.moving, mesh.triangles,
+                            extrapolated=tri_report.extrapolated)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
             for name, move in insertions():
                 found = move.find(current, Search(

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from pwlreg.core.epipolar import EpipolarModel
+from pwlreg.core.extent import border_positions, local_affine_extrapolation
 from pwlreg.core.flow import flow_scale
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.kernels import spaced
@@ -102,6 +103,38 @@ def test_epipolar_pairs_lie_on_the_true_map() -> None:
     miss, old_miss = _misses(mesh, found)
     assert np.median(miss) < 0.5 and miss.max() < 1.5, np.sort(miss)[-5:]
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
+
+
+def test_extrapolated_border_vertices_leave_room_for_measured_pairs() -> None:
+    # Measured vertices in the middle only, and the frame's border extrapolated from them
+    # (extent="frame"): the border vertices are no measurement, so corners near the frame's
+    # side may become pairs; counted as vertices, they kept every candidate within 15 px of
+    # the side away.
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    xs, ys = np.linspace(70.0, 250.0, 4), np.linspace(60.0, 180.0, 3)
+    ref = np.array([(x, y) for x in xs for y in ys])
+    mov = np.column_stack(book_map(ref[:, 0], ref[:, 1], CREASE))
+    border = border_positions((SIZE[1], SIZE[0]), 40.0)
+    mesh, report = initial_mesh(
+        np.concatenate([ref, border]),
+        np.concatenate([mov, local_affine_extrapolation(ref, mov, border)]),
+        25.0, np.arange(len(ref) + len(border)) >= len(ref))
+    grey, images = levels(ref_img, mov_img), prepare_images(ref_img, mov_img, 16)
+    none = np.zeros((0, 2))
+
+    def near_side(extrapolated: np.ndarray | None) -> np.ndarray:
+        found = epipolar_pairs(
+            guide(grey, mesh.reference, mesh.moving, mesh.triangles, extrapolated=extrapolated),
+            images, BOOK_MODEL, added=(none, none), measured=len(ref), budget=2 * len(ref),
+            epsilon=0.01, epsilon_pixels=250.0)
+        x, y = found.reference.T
+        near = np.minimum(np.minimum(x, SIZE[0] - 1 - x), np.minimum(y, SIZE[1] - 1 - y)) < 15
+        truth = np.column_stack(book_map(x[near], y[near], CREASE))
+        return np.hypot(*(found.moving[near] - truth).T)
+
+    assert len(near_side(None)) == 0
+    miss = near_side(report.extrapolated)
+    assert len(miss) >= 3 and miss.max() < 1.5, miss
 
 
 def test_epipolar_pairs_refuse_repeated_texture() -> None:
