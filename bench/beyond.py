@@ -21,7 +21,7 @@ import numpy as np
 
 from bench import middlebury, quality, trust
 from bench.ceiling import ceiling_search, realised_share
-from bench.metrics import endpoint_error
+from bench.metrics import disparity_steps, endpoint_error, error_by_triangle
 from bench.quality import Case, CaseData, build_cases
 from pwlreg.core.errors import InputError
 from pwlreg.core.pipeline import register, warm_up
@@ -143,17 +143,22 @@ def dense_flow(reference: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, n
 
 
 def frame_section(configs: dict[str, dict]) -> None:
-    """Middlebury, automatic points, the whole frame: pwlreg against AROSICS and DIS."""
+    """Middlebury, automatic points, the whole frame: pwlreg against AROSICS and DIS, and where
+    the first configuration's frame error lives against DIS's
+    (:func:`bench.metrics.error_by_triangle`)."""
     print("\nMiddlebury, automatic points: mean EPE px over the valid pixels the mesh covers "
           "(coverage of the valid pixels) / time s, for extent=hull and frame")
+    where = []
     for name in middlebury.available_middlebury():
         pair = middlebury.load_middlebury(name)
         cells = []
+        frame = None
         for label, opts in configs.items():
             for extent in ("hull", "frame"):
                 t0 = time.perf_counter()
                 r = register(pair.reference, pair.moving, options={**opts, "extent": extent})
                 t = time.perf_counter() - t0
+                frame = frame or (r if extent == "frame" else None)
                 e = endpoint_error(r.reference_vertices, r.moving_vertices, r.final_triangles,
                                    pair.truth_x, pair.truth_y, pair.valid)
                 cells.append(f"{label} {extent} {e['mean']:.3f} ({100 * e['coverage']:.0f} %) "
@@ -161,11 +166,23 @@ def frame_section(configs: dict[str, dict]) -> None:
         t0 = time.perf_counter()
         fx, fy = dense_flow(pair.reference, pair.moving)
         t = time.perf_counter() - t0
-        err = np.hypot(fx - pair.truth_x, fy - pair.truth_y)[pair.valid]
-        cells.append(f"DIS {np.nanmean(err):.3f} {t:.3f} s")
+        dis = np.hypot(fx - pair.truth_x, fy - pair.truth_y)
+        cells.append(f"DIS {np.nanmean(dis[pair.valid]):.3f} {t:.3f} s")
         peer = _arosics_best(name)
         cells.append("AROSICS (peer file) " + ("-" if peer is None else f"{peer:.3f}"))
         print(f"  {name:26s} " + " | ".join(cells), flush=True)
+        classes = error_by_triangle(
+            frame.reference_vertices, frame.moving_vertices, frame.final_triangles,
+            pair.truth_x, pair.truth_y, pair.valid, steps=disparity_steps(pair.disparity),
+            extrapolated=frame.triangulation.extrapolated, others={"DIS": dis})
+        where.append(f"  {name:26s} " + " | ".join(
+            f"{k} {100 * c['share']:.0f} %: {c['mean']:.2f} / {c['DIS mean']:.2f} "
+            f"({c['contribution']:.3f} / {c['DIS contribution']:.3f})"
+            for k, c in classes.items()))
+    print(f"\nWhere the frame error of '{next(iter(configs))}' lives, by triangle (pixels of "
+          "the class, mean EPE px mesh / DIS over them, their part of the overall mean); a "
+          "step is a disparity jump over 1 px, a vertex off is more than 1 px from the truth")
+    print("\n".join(where))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,12 +31,15 @@ from pwlreg.core.similarity import mutual_information
 from pwlreg.core.warp import piecewise_map
 
 __all__ = [
+    "TRIANGLE_CLASSES",
     "EdgeCompatibility",
     "disparity_correctness",
+    "disparity_steps",
     "disparity_edge_compatibility",
     "edge_compatibility",
     "endpoint_error",
     "endpoint_error_map",
+    "error_by_triangle",
     "error_summary",
     "global_mi",
     "mesh_correctness",
@@ -152,6 +155,100 @@ def endpoint_error(
     total = int(scorable.sum())
     stats["coverage"] = stats["n"] / total if total else float("nan")
     return stats
+
+
+TRIANGLE_CLASSES = ("extrapolated", "step", "vertex off", "clean")
+"""The classes of :func:`error_by_triangle`, in the order a triangle is given its class."""
+
+
+def disparity_steps(disparity: np.ndarray, *, jump: float = 1.0) -> np.ndarray:
+    """Pixels where a disparity map jumps by more than ``jump`` pixels to its right or lower
+    neighbour (a depth step); NaN (unknown) never makes a step. Boolean ``(H, W)``."""
+    d = np.asarray(disparity, dtype=np.float64)
+    steps = np.zeros(d.shape, bool)
+    with np.errstate(invalid="ignore"):
+        steps[:, :-1] |= np.abs(np.diff(d, axis=1)) > jump
+        steps[:-1, :] |= np.abs(np.diff(d, axis=0)) > jump
+    return steps
+
+
+def error_by_triangle(
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    truth_x: np.ndarray,
+    truth_y: np.ndarray,
+    valid: np.ndarray,
+    *,
+    steps: np.ndarray,
+    extrapolated: np.ndarray,
+    others: dict[str, np.ndarray] | None = None,
+    vertex_tolerance: float = 1.0,
+) -> dict[str, dict[str, float]]:
+    """Where the endpoint error of a mesh lives: per class of triangle, its pixels and error.
+
+    Each triangle takes the first class of :data:`TRIANGLE_CLASSES` that fits it:
+    ``extrapolated`` (a vertex whose moving position was extrapolated, not measured), ``step``
+    (it holds a pixel of ``steps``: a planar map cannot follow a depth step inside it),
+    ``vertex off`` (a vertex more than ``vertex_tolerance`` pixels from the truth at its nearest
+    pixel) and ``clean`` (none of these: what is left is the planar approximation and the
+    vertices' small errors).
+
+    Parameters
+    ----------
+    reference_vertices, moving_vertices, triangles, truth_x, truth_y, valid
+        As in :func:`endpoint_error_map`; ``valid`` is required.
+    steps : ndarray of bool, shape (H, W)
+        Depth steps (e.g. :func:`disparity_steps`).
+    extrapolated : ndarray of bool, shape (N,)
+        Per vertex, whether its moving position was extrapolated.
+    others : dict of str to ndarray, optional
+        Per-pixel endpoint error maps of other methods (e.g. a dense optical flow), averaged
+        over the same pixels.
+    vertex_tolerance : float
+        Pixels.
+
+    Returns
+    -------
+    dict
+        Class -> ``share`` (of the scored pixels), ``mean`` (mesh EPE over its pixels) and
+        ``contribution`` (its part of the overall mean: ``share * mean``); for each of
+        ``others``, ``<name> mean`` and ``<name> contribution`` over the same pixels.
+    """
+    ref = np.asarray(reference_vertices, dtype=np.float64)
+    mov = np.asarray(moving_vertices, dtype=np.float64)
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    truth_x = np.asarray(truth_x, dtype=np.float64)
+    truth_y = np.asarray(truth_y, dtype=np.float64)
+    map_x, map_y, label = piecewise_map(ref, mov, tris, truth_x.shape)
+    err = np.hypot(map_x - truth_x, map_y - truth_y)
+    scored = (label >= 0) & np.isfinite(err) & np.asarray(valid, dtype=bool)
+    h, w = truth_x.shape
+    col = np.clip(np.rint(ref[:, 0]).astype(np.int64), 0, w - 1)
+    row = np.clip(np.rint(ref[:, 1]).astype(np.int64), 0, h - 1)
+    off = np.hypot(truth_x[row, col] - mov[:, 0], truth_y[row, col] - mov[:, 1])
+    off = np.isfinite(off) & (off > vertex_tolerance)
+    inside = label >= 0
+    holds_step = np.bincount(label[inside & np.asarray(steps, bool)], minlength=len(tris)) > 0
+    flags = [np.asarray(extrapolated, bool)[tris].any(axis=1), holds_step, off[tris].any(axis=1)]
+    kind = np.full(len(tris), len(flags), np.int64)
+    for k in range(len(flags) - 1, -1, -1):
+        kind[flags[k]] = k
+    pixel_kind = kind[label[scored]]
+    total = int(scored.sum())
+    out: dict[str, dict[str, float]] = {}
+    for k, name in enumerate(TRIANGLE_CLASSES):
+        mask = pixel_kind == k
+        n = int(mask.sum())
+        cell = {"share": n / total if total else float("nan")}
+        for label_name, e in {"mesh": err, **(others or {})}.items():
+            values = np.asarray(e, dtype=np.float64)[scored][mask]
+            mean = float(values.mean()) if n else float("nan")
+            prefix = "" if label_name == "mesh" else f"{label_name} "
+            cell[f"{prefix}mean"] = mean
+            cell[f"{prefix}contribution"] = float(values.sum()) / total if total else float("nan")
+        out[name] = cell
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -9,9 +9,12 @@ from scipy.spatial import Delaunay
 
 from bench import middlebury
 from bench.metrics import (
+    TRIANGLE_CLASSES,
+    disparity_steps,
     edge_compatibility,
     endpoint_error,
     endpoint_error_map,
+    error_by_triangle,
     error_summary,
     global_mi,
     mesh_correctness,
@@ -306,3 +309,31 @@ def test_middlebury_delaunay_baseline(sawtooth):
     assert 0.3 < np.mean([s["mean"] for s in stats]) < 1.2
     assert np.mean([s["median"] for s in stats]) < 0.1
     assert all(0.8 < s["coverage"] < 1.0 for s in stats)
+
+
+def test_error_by_triangle_finds_the_step_the_bad_vertex_and_the_border():
+    # Two fronto-parallel planes (disparity 5 left of x = 50, 15 right), two squares of exact
+    # vertices joined across the step; vertex 0 flagged extrapolated, vertex 7 moved 2 px.
+    disparity = np.where(np.arange(100)[None, :] < 50, 5.0, 15.0).repeat(60, axis=0)
+    yy, xx = np.mgrid[0:60, 0:100].astype(np.float64)
+    truth_x, truth_y = xx - disparity, yy
+    ref = np.array([[10.0, 10], [40, 10], [10, 50], [40, 50],
+                    [60, 10], [90, 10], [60, 50], [90, 50]])
+    mov = ref - np.where(ref[:, :1] < 50, 5.0, 15.0) * np.array([[1.0, 0.0]])
+    mov[7] += [2.0, 0.0]
+    tris = np.array([[0, 1, 2], [1, 3, 2], [1, 4, 3], [4, 6, 3], [4, 5, 6], [5, 7, 6]])
+    extrapolated = np.zeros(8, bool)
+    extrapolated[0] = True
+    valid = np.ones(disparity.shape, bool)
+    steps = disparity_steps(disparity)
+    assert steps.sum() == 60 and steps[:, 49].all()
+    classes = error_by_triangle(ref, mov, tris, truth_x, truth_y, valid, steps=steps,
+                                extrapolated=extrapolated, others={"flow": np.zeros((60, 100))})
+    assert tuple(classes) == TRIANGLE_CLASSES
+    assert classes["clean"]["mean"] < 1e-6 and classes["extrapolated"]["mean"] < 1e-6
+    assert classes["step"]["mean"] > 2.0
+    assert 0.1 < classes["vertex off"]["mean"] < 2.0
+    assert sum(c["share"] for c in classes.values()) == pytest.approx(1.0)
+    overall = endpoint_error(ref, mov, tris, truth_x, truth_y, valid)["mean"]
+    assert sum(c["contribution"] for c in classes.values()) == pytest.approx(overall)
+    assert all(c["flow mean"] == 0.0 for c in classes.values())
