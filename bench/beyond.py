@@ -158,7 +158,8 @@ def frame_section(configs: dict[str, dict]) -> None:
                 t0 = time.perf_counter()
                 r = register(pair.reference, pair.moving, options={**opts, "extent": extent})
                 t = time.perf_counter() - t0
-                frame = frame or (r if extent == "frame" else None)
+                if extent == "frame" and frame is None:
+                    frame = r
                 e = endpoint_error(r.reference_vertices, r.moving_vertices, r.final_triangles,
                                    pair.truth_x, pair.truth_y, pair.valid)
                 cells.append(f"{label} {extent} {e['mean']:.3f} ({100 * e['coverage']:.0f} %) "

@@ -228,25 +228,23 @@ def error_by_triangle(
     row = np.clip(np.rint(ref[:, 1]).astype(np.int64), 0, h - 1)
     off = np.hypot(truth_x[row, col] - mov[:, 0], truth_y[row, col] - mov[:, 1])
     off = np.isfinite(off) & (off > vertex_tolerance)
-    inside = label >= 0
-    holds_step = np.bincount(label[inside & np.asarray(steps, bool)], minlength=len(tris)) > 0
-    flags = [np.asarray(extrapolated, bool)[tris].any(axis=1), holds_step, off[tris].any(axis=1)]
-    kind = np.full(len(tris), len(flags), np.int64)
-    for k in range(len(flags) - 1, -1, -1):
-        kind[flags[k]] = k
-    pixel_kind = kind[label[scored]]
+    holds_step = np.bincount(label[(label >= 0) & np.asarray(steps, bool)],
+                             minlength=len(tris)) > 0
+    # The first class that fits: the last column (clean) always does.
+    fits = np.column_stack([np.asarray(extrapolated, bool)[tris].any(axis=1), holds_step,
+                            off[tris].any(axis=1), np.ones(len(tris), bool)])
+    pixel_kind = np.argmax(fits, axis=1)[label[scored]]
     total = int(scored.sum())
+    values = {("" if name == "mesh" else f"{name} "): np.asarray(e, dtype=np.float64)[scored]
+              for name, e in {"mesh": err, **(others or {})}.items()}
     out: dict[str, dict[str, float]] = {}
     for k, name in enumerate(TRIANGLE_CLASSES):
         mask = pixel_kind == k
         n = int(mask.sum())
         cell = {"share": n / total if total else float("nan")}
-        for label_name, e in {"mesh": err, **(others or {})}.items():
-            values = np.asarray(e, dtype=np.float64)[scored][mask]
-            mean = float(values.mean()) if n else float("nan")
-            prefix = "" if label_name == "mesh" else f"{label_name} "
-            cell[f"{prefix}mean"] = mean
-            cell[f"{prefix}contribution"] = float(values.sum()) / total if total else float("nan")
+        for prefix, v in values.items():
+            cell[f"{prefix}mean"] = float(v[mask].mean()) if n else float("nan")
+            cell[f"{prefix}contribution"] = float(v[mask].sum()) / total if total else float("nan")
         out[name] = cell
     return out
 
