@@ -545,6 +545,9 @@ def greedy_search(
     gain: dict[Edge, float] = dict(zip(candidates, gains, strict=True))
     heap = [(-d, e) for e, d in best.items()]
     heapq.heapify(heap)
+    # Edges of ``best`` over their threshold, counted as they change: the progress fraction
+    # read it every 16 swaps, and a pass over ``best`` cost 5 % of the search (1139 vertices).
+    positive = sum(d > 0.0 for d in over)
     stopped = "no swap raises the consistency by more than epsilon"
     if progress is not None:
         progress(0.0)
@@ -563,15 +566,18 @@ def greedy_search(
         taken.append((e, added, delta, move, time.perf_counter() - t0))
 
     def rescore(edges: Iterable[Edge]) -> None:
+        nonlocal positive
         ring, quads = [], []
         for b in dict.fromkeys(edges):
-            best.pop(b, None)
+            if best.pop(b, 0.0) > 0.0:
+                positive -= 1
             q = eligible(b)
             if q is not None:
                 ring.append(b)
                 quads.append(q)
         for b, g, d in zip(ring, *margins(quads), strict=True):
             best[b] = d
+            positive += d > 0.0
             gain[b] = g
             heapq.heappush(heap, (-d, b))
         result.evaluations += len(ring)
@@ -649,6 +655,7 @@ def greedy_search(
             break
         _, e = heapq.heappop(heap)
         del best[e]
+        positive -= 1  # it was the best, over its threshold
         q = eligible(e)
         if q is None:
             # A swap elsewhere created, or retired, the edge this one would add.
@@ -659,8 +666,7 @@ def greedy_search(
         record(e, added, gain[e], "swap")
         rescore(q.boundary)
         if progress is not None and len(taken) % 16 == 0:
-            remaining = sum(d > 0.0 for d in best.values())
-            progress(len(taken) / (len(taken) + remaining))
+            progress(len(taken) / (len(taken) + positive))
     if taken:
         r = np.array(moves)
         table = cache.table
