@@ -81,6 +81,9 @@ class StereoTruth:
         check, i.e. not occluded in the moving view).
     known : ndarray of bool, shape (H, W)
         Pixels with a known disparity.
+    mapped : ndarray of bool, shape (H, W)
+        ``valid`` without the left-right check: known disparity, true position inside the
+        moving image (pixels occluded in the moving view included).
     """
 
     name: str
@@ -91,6 +94,7 @@ class StereoTruth:
     truth_y: np.ndarray
     valid: np.ndarray
     known: np.ndarray
+    mapped: np.ndarray
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -160,7 +164,8 @@ def load_middlebury(
     known = np.isfinite(disparity)
     w2 = moving.shape[1]
     with np.errstate(invalid="ignore"):
-        valid = known & (truth_x >= 0) & (truth_x <= w2 - 1)
+        mapped = known & (truth_x >= 0) & (truth_x <= w2 - 1)
+    valid = mapped.copy()
     if occlusion_tolerance is not None and meta.get("disparity_moving"):
         d6 = _disparity(folder, meta["disparity_moving"], meta)
         col = np.clip(np.rint(np.nan_to_num(truth_x, nan=0.0)).astype(np.int64), 0, w2 - 1)
@@ -176,6 +181,7 @@ def load_middlebury(
         truth_y=truth_y,
         valid=valid,
         known=known,
+        mapped=mapped,
     )
 
 
