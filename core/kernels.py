@@ -216,108 +216,120 @@ def level_counts(gray, counts):  # type: ignore[no-untyped-def]
         counts[v] += part[0, v] + part[1, v] + part[2, v] + part[3, v]
 
 
-@njit(cache=True, inline="always")
-def _entropy(counts: np.ndarray, n: float) -> float:
-    """Entropy in bits of counts summing to ``n``: ``-sum(p log2 p)``, exactly 0 for one cell."""
-    h = 0.0
-    for c in counts:
-        if c > 0.0:
-            p = c / n
-            h -= p * np.log2(p)
-    return h
+#: Size of the table of ``c log2 c`` that the summed-histogram kernel reads instead of a
+#: logarithm per cell (a quad's counts are far below it; larger ones are computed).
+XLOGX_SIZE = 1 << 16
 
 
 @njit(cache=True, inline="always")
-def _row_information(row: np.ndarray, pa: np.ndarray, pb: np.ndarray, bins: int):  # type: ignore[no-untyped-def]
-    """MI, NMI and total of the float counts ``row`` (bins * bins); ``pa``/``pb`` are scratch.
+def _xlogx(c: float) -> float:
+    """``c log2 c`` of a count, 0 for counts of 0 or 1."""
+    return c * np.log2(c) if c > 1.0 else 0.0
+
+
+@njit(cache=True)
+def xlogx_table(size: int) -> np.ndarray:
+    """``_xlogx`` of the counts ``0 .. size - 1``: the same values bit for bit."""
+    table = np.empty(size)
+    for c in range(size):
+        table[c] = _xlogx(float(c))
+    return table
+
+
+@njit(cache=True, inline="always")
+def _counted_xlogx(c: int, table: np.ndarray) -> float:
+    if c < table.shape[0]:
+        return table[c]
+    return _xlogx(float(c))
+
+
+@njit(cache=True, inline="always")
+def _information(s_ab: float, s_a: float, s_b: float, n: float):  # type: ignore[no-untyped-def]
+    """MI and NMI in bits from the sums of ``c log2 c`` over the joint cells and over each
+    marginal of ``n`` pixels, as ``H = log2 n - sum(c log2 c) / n``: one logarithm per cell
+    fewer than ``-sum(p log2 p)``, and none where a table holds ``c log2 c``.
 
     MI is clamped to [0, min(H(A), H(B))]; a histogram with no or a single occupied cell has
     ``H(A, B) = 0`` and gets MI = NMI = 0 (no information, not a perfect match).
     """
-    pa[:] = 0.0
-    pb[:] = 0.0
-    n = 0.0
-    for a in range(bins):
-        for b in range(bins):
-            c = row[a * bins + b]
-            n += c
-            pa[a] += c
-            pb[b] += c
     if n == 0.0:
-        return 0.0, 0.0, n
-    h_ab = _entropy(row, n)
+        return 0.0, 0.0
+    log_n = np.log2(n)
+    h_ab = log_n - s_ab / n
     if h_ab <= 1e-12:
-        return 0.0, 0.0, n
-    h_a = _entropy(pa, n)
-    h_b = _entropy(pb, n)
+        return 0.0, 0.0
+    h_a = log_n - s_a / n
+    h_b = log_n - s_b / n
     value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
-    return value, value / h_ab, n
+    return value, value / h_ab
 
 
 @njit(cache=True)
 def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
-    """MI and NMI in bits of each row of ``hist`` (K, bins * bins), written to ``mi``/``nmi``
-    (:func:`_row_information`)."""
+    """MI and NMI in bits of each row of ``hist`` (K, bins * bins) of float counts, written to
+    ``mi``/``nmi`` (:func:`_information`)."""
     pa = np.empty(bins)
     pb = np.empty(bins)
-    row = np.empty(bins * bins)
     for r in range(hist.shape[0]):
-        for c in range(bins * bins):
-            row[c] = float(hist[r, c])
-        mi[r], nmi[r], _ = _row_information(row, pa, pb, bins)
+        row = hist[r]
+        pa[:] = 0.0
+        pb[:] = 0.0
+        s_ab = 0.0
+        for a in range(bins):
+            for b in range(bins):
+                c = row[a * bins + b]
+                pa[a] += c
+                pb[b] += c
+                s_ab += _xlogx(c)
+        n = 0.0
+        s_a = 0.0
+        s_b = 0.0
+        for a in range(bins):
+            n += pa[a]
+            s_a += _xlogx(pa[a])
+            s_b += _xlogx(pb[a])
+        mi[r], nmi[r] = _information(s_ab, s_a, s_b, n)
 
 
 @njit(cache=True)
-def summed_information(hist, rows, bins, mi, nmi, pixels):  # type: ignore[no-untyped-def]
+def summed_information(hist, rows, bins, mi, nmi, pixels, table):  # type: ignore[no-untyped-def]
     """:func:`information` of sums of rows of ``hist``, without gathering them first.
 
     Output ``k`` is for ``hist[rows[k]].sum(axis=0)``, ``rows`` (K, S) int64; ``pixels[k]`` gets
-    its total count. The sums are exact integers, so the values are those of
-    :func:`information` on the summed histograms, bit for bit.
+    its total count; ``table`` is :func:`xlogx_table`. The sums are exact integers, summed in
+    the same order, so the values are those of :func:`information` on the summed histograms,
+    bit for bit.
     """
     nb = bins * bins
-    pa = np.empty(bins)
-    pb = np.empty(bins)
     counts = np.empty(nb, dtype=np.int64)
     ca = np.empty(bins, dtype=np.int64)
     cb = np.empty(bins, dtype=np.int64)
-    row = np.empty(nb)
     for k in range(rows.shape[0]):
         counts[:] = 0
         for s in range(rows.shape[1]):
             src = hist[rows[k, s]]
             for c in range(nb):
                 counts[c] += src[c]
-        # The total and the marginals summed as integers: exact, so equal to the float sums of
-        # _row_information (integers below 2**53), without their chain of float additions.
+        # The marginals and the total summed as integers: exact, so equal to the float sums of
+        # information() (integers below 2**53).
         ca[:] = 0
         cb[:] = 0
+        s_ab = 0.0
         for a in range(bins):
             for b in range(bins):
                 c = counts[a * bins + b]
                 ca[a] += c
                 cb[b] += c
+                s_ab += _counted_xlogx(c, table)
         total = 0
+        s_a = 0.0
+        s_b = 0.0
         for a in range(bins):
             total += ca[a]
-            pa[a] = float(ca[a])
-            pb[a] = float(cb[a])
-        n = float(total)
-        pixels[k] = n
-        mi[k] = 0.0
-        nmi[k] = 0.0
-        if total == 0:
-            continue
-        for c in range(nb):
-            row[c] = float(counts[c])
-        h_ab = _entropy(row, n)
-        if h_ab <= 1e-12:
-            continue
-        h_a = _entropy(pa, n)
-        h_b = _entropy(pb, n)
-        value = min(max(h_a + h_b - h_ab, 0.0), h_a, h_b)
-        mi[k] = value
-        nmi[k] = value / h_ab
+            s_a += _counted_xlogx(ca[a], table)
+            s_b += _counted_xlogx(cb[a], table)
+        pixels[k] = float(total)
+        mi[k], nmi[k] = _information(s_ab, s_a, s_b, float(total))
 
 
 @njit(cache=True, inline="always")

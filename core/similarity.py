@@ -12,6 +12,7 @@ Mutual information is in bits: ``MI = H(A) + H(B) - H(A, B)``; the paper normali
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import cv2
 import numpy as np
@@ -236,6 +237,11 @@ def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndar
     return mi.reshape(lead), nmi.reshape(lead)
 
 
+@cache
+def _xlogx_table() -> np.ndarray:
+    return kernels.xlogx_table(kernels.XLOGX_SIZE)
+
+
 def summed_information(
     hist: np.ndarray, rows: np.ndarray, bins: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -262,7 +268,7 @@ def summed_information(
     mi = np.empty(len(idx))
     nmi = np.empty(len(idx))
     pixels = np.empty(len(idx))
-    kernels.summed_information(hist, idx, bins, mi, nmi, pixels)
+    kernels.summed_information(hist, idx, bins, mi, nmi, pixels, _xlogx_table())
     return mi.reshape(lead), nmi.reshape(lead), pixels.reshape(lead)
 
 
