@@ -17,7 +17,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from pwlreg.core.epipolar import EpipolarModel
-from pwlreg.core.refine import EPI_REACH, Guide, Insertion, epipolar_pairs, guided_pairs
+from pwlreg.core.refine import (
+    EPI_REACH,
+    STEP_OFFSET,
+    Guide,
+    Insertion,
+    epipolar_pairs,
+    guided_pairs,
+    step_points,
+)
 from pwlreg.core.similarity import ScoringImages
 
 
@@ -66,11 +74,16 @@ class Move:
     find : callable or None
         For insertions: ``find(guide, search) -> Insertion`` (None when the source cannot run
         on this pair).
+    own_budget : float or None
+        For insertions: None to draw on the budget the sources share
+        (:func:`core.pipeline.insertion_budget`), or a budget of its own over all rounds, as a
+        share of the matched pairs.
     """
 
     kind: str
     reason: str
     find: Finder | None = None
+    own_budget: float | None = None
 
 
 def _flow(mesh: Guide, search: Search) -> Insertion:
@@ -84,6 +97,16 @@ def _epipolar(mesh: Guide, search: Search) -> Insertion | None:
     return epipolar_pairs(
         mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
         budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
+    )
+
+
+def _step(mesh: Guide, search: Search) -> Insertion | None:
+    if search.epipolar is None:
+        return None
+    return epipolar_pairs(
+        mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
+        budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
+        candidates=step_points(mesh),
     )
 
 
@@ -104,6 +127,15 @@ MOVES: dict[str, Move] = {
         "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
         "information of the triangle they split",
         _epipolar,
+    ),
+    "step": Move(
+        "insertion",
+        f"a reference point {STEP_OFFSET:g} px of the level beside a jump of the residual "
+        "optical flow (a depth step inside a triangle), matched along its epipolar line as the "
+        "epipolar move's corners are; it has a budget of its own, half the matched pairs, "
+        "since a step needs vertices on both sides however dense the mesh is elsewhere",
+        _step,
+        own_budget=0.5,
     ),
     "swap": Move(
         "swap",

@@ -60,8 +60,10 @@ class RegistrationOptions(BaseModel):
         "mesh is too far off for the flow, corners are searched for along their epipolar "
         "line (unambiguous peak, left-right check, not contradicted by their neighbours). "
         "Large corrections must also raise the mutual information of the triangle they "
-        "split; at most as many new pairs as matched ones (at least 200), and the mesh is "
-        "built again over all of them. "
+        "split; at most as many new pairs as matched ones (at least 200). Where the residual "
+        "flow jumps (a depth step inside a triangle), points on both sides of the jump are "
+        "searched for along their epipolar lines too, up to half the matched pairs more. The "
+        "mesh is built again over all of them. "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept); 'never': the paper's mesh over the points alone.",
     )

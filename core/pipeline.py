@@ -18,7 +18,7 @@ from pwlreg.core.extent import frame_vertices
 from pwlreg.core.imaging import matching_image, to_gray8
 from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
-from pwlreg.core.moves import Search, inserted_mask, insertions
+from pwlreg.core.moves import MOVES, Search, inserted_mask, insertions
 from pwlreg.core.optimize import SearchResult
 from pwlreg.core.optimizers import OPTIMIZERS
 from pwlreg.core.options import RegistrationOptions
@@ -126,7 +126,8 @@ class RegistrationResult:
 
 
 def insertion_budget(matched: int) -> int:
-    """Most measured vertices after the insertion: twice the matched pairs, at least
+    """Most measured vertices after the insertion by the sources that share a budget
+    (:attr:`core.moves.Move.own_budget`): twice the matched pairs, at least
     :data:`MIN_INSERTED` more."""
     return max(2 * matched, matched + MIN_INSERTED)
 
@@ -262,18 +263,25 @@ def register(
     if made is not None:
         grey = made.result()
         insertion = {"inserted": 0}
+        matched = len(conjugate.reference)
+        by_source = dict.fromkeys((name for name, _ in insertions()), 0)
         for _ in range(INSERTION_ROUNDS):
             current = guide(grey, mesh.reference, mesh.moving, mesh.triangles,
                             extrapolated=tri_report.extrapolated)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
             for name, move in insertions():
+                if move.own_budget is None:
+                    budget = insertion_budget(matched) - matched - sum(
+                        n for k, n in by_source.items() if MOVES[k].own_budget is None)
+                else:
+                    budget = int(move.own_budget * matched) - by_source[name]
                 found = move.find(current, Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
-                    budget=insertion_budget(len(conjugate.reference)) - len(ref_meas)
-                    - len(new_ref), added=(new_ref, new_mov), epsilon=opts.epsilon,
+                    budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
                     epsilon_pixels=opts.epsilon_pixels))
                 if found is None:
                     continue
+                by_source[name] += len(found.reference)
                 _add_counts(insertion, name, found.counts)
                 new_ref = np.concatenate([new_ref, found.reference])
                 new_mov = np.concatenate([new_mov, found.moving])

@@ -12,13 +12,16 @@ triangle they split (an occlusion fools the flow, not the joint histogram).
 
 Where the mesh is far off (a triangle across a depth step, or a wide baseline that left few
 pairs) the flow fails its forward-backward test; :func:`epipolar_pairs` then searches for the
-remaining corners along their epipolar lines. The pipeline builds the mesh again over the old
-and the new pairs.
+remaining corners along their epipolar lines. Where the residual flow jumps, a depth step
+crosses a triangle whose affine map follows neither surface; :func:`step_points` puts
+candidates on both sides of the jump, searched for along their lines too. The pipeline builds
+the mesh again over the old and the new pairs.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -177,6 +180,15 @@ class Guide:
     label: np.ndarray
     measured: np.ndarray
 
+    @cached_property
+    def residual(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The registered level (the moving level seen through the mesh, 0 outside it) and
+        the residual flows from the reference level to it and back
+        (:func:`core.flow.residual_flows`): computed once for every source of a round."""
+        registered = cv2.remap(self.levels.moving, self.map_x, self.map_y, cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return (registered, *residual_flows(self.levels.reference, registered))
+
 
 def guide(
     image_levels: Levels,
@@ -252,12 +264,10 @@ def guided_pairs(
     if budget <= 0:
         return empty
     h, w = mesh.levels.shape
-    scale, ref_l, mov_l = mesh.levels.scale, mesh.levels.reference, mesh.levels.moving
+    scale, ref_l = mesh.levels.scale, mesh.levels.reference
     ref_v, mov_v, tris = mesh.reference_vertices, mesh.moving_vertices, mesh.triangles
     map_x, map_y, inside = mesh.map_x, mesh.map_y, mesh.label >= 0
-    registered = cv2.remap(mov_l, map_x, map_y, cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    forward, backward = residual_flows(ref_l, registered)
+    registered, forward, backward = mesh.residual
 
     spacing = np.sqrt(h * w / max(measured, 1)) * scale  # pixels of the level
     points = _corners(mesh.levels, measured)
@@ -456,6 +466,57 @@ EPI_NEIGHBOURS = 8
 #: search along the reference's epipolar line lands.
 LR_PX = 1.0
 
+#: A jump of the residual flow: its range over 5x5 pixels of the level exceeds this (pixels).
+#: Where the mesh is right the flow is nearly constant; a triangle across a depth step maps
+#: like neither surface, and the flow that corrects it changes sides at the step.
+STEP_JUMP = 1.0
+#: Candidates lie this far (pixels of the level) on either side of a jump, across it: the
+#: correlation patch (:data:`EPI_HALF`) stays on one side.
+STEP_OFFSET = 6.0
+#: Spacing (pixels of the level) of the points along the jumps that candidates are put beside.
+STEP_SPACING = 10.0
+#: Jumps nearer the mesh's outline (pixels of the level) are the flow's, at the registered
+#: image's edge: DIS's medium preset has 8 px patches at its finest scale.
+STEP_MARGIN = 8
+#: Smallest distance (pixels of the level) of a step candidate to a vertex or another candidate:
+#: triangles of less than 25 px (``min_triangle_area``) would be removed, leaving holes.
+STEP_NEAR = 8.0
+
+
+def step_points(mesh: Guide) -> np.ndarray:
+    """Reference points (pixels of the level) on both sides of the jumps of the residual flow,
+    the largest jumps first.
+
+    Along the pixels where the flow's range over 5x5 exceeds :data:`STEP_JUMP` (at least
+    :data:`STEP_MARGIN` inside the mesh), points at least :data:`STEP_SPACING` apart are
+    taken, each moved :data:`STEP_OFFSET` both ways along the gradient of the flow component
+    that jumps more there; candidates closer than :data:`STEP_NEAR` to one chosen before are
+    dropped.
+    """
+    _, forward, _ = mesh.residual
+    box = np.ones((5, 5), np.uint8)
+    jump = np.maximum(*(cv2.dilate(forward[..., c], box) - cv2.erode(forward[..., c], box)
+                        for c in (0, 1)))
+    # Not within STEP_MARGIN of the mesh's outline: the registered image is 0 beyond it, and
+    # the flow's patches straddling that edge jump too.
+    margin = np.ones((2 * STEP_MARGIN + 1,) * 2, np.uint8)
+    inside = cv2.erode((mesh.label >= 0).astype(np.uint8), margin, borderValue=1) > 0
+    ys, xs = np.nonzero((jump > STEP_JUMP) & inside)
+    if not len(xs):
+        return np.zeros((0, 2))
+    order = np.argsort(-jump[ys, xs], kind="stable")
+    along = np.column_stack([xs[order], ys[order]]).astype(np.float64)
+    seeds = along[spaced(along, STEP_SPACING, len(along))]
+    x, y = seeds.astype(np.int64).T
+    gradients = [np.column_stack([cv2.Sobel(forward[..., c], cv2.CV_32F, 1, 0, ksize=5)[y, x],
+                                  cv2.Sobel(forward[..., c], cv2.CV_32F, 0, 1, ksize=5)[y, x]])
+                 for c in (0, 1)]
+    larger = np.hypot(*gradients[0].T) >= np.hypot(*gradients[1].T)
+    across = np.where(larger[:, None], gradients[0], gradients[1]).astype(np.float64)
+    across /= np.maximum(np.hypot(*across.T), 1e-9)[:, None]
+    points = np.concatenate([seeds + STEP_OFFSET * across, seeds - STEP_OFFSET * across])
+    return points[spaced(points, STEP_NEAR, len(points))]
+
 
 def epipolar_pairs(
     mesh: Guide,
@@ -467,6 +528,7 @@ def epipolar_pairs(
     budget: int,
     epsilon: float,
     epsilon_pixels: float,
+    candidates: np.ndarray | None = None,
 ) -> Insertion:
     """New conjugate pairs matched along the epipolar lines, guided by the current mesh.
 
@@ -490,6 +552,10 @@ def epipolar_pairs(
     added : (ndarray, ndarray)
         Pairs ``(reference (K, 2), moving (K, 2))`` already found for this mesh (by
         :func:`guided_pairs`): new pairs keep their distance and they count as neighbours.
+    candidates : ndarray, shape (C, 2), optional
+        Reference points (pixels of the level) to search for instead of the corners, in order
+        of preference (:func:`step_points`); they keep :data:`STEP_NEAR` from every vertex,
+        extrapolated ones included, and from the pairs found already.
 
     The other parameters are those of :func:`guided_pairs`.
 
@@ -520,25 +586,32 @@ def epipolar_pairs(
     # The spacing of the mesh the budget allows: a sparse mesh (a wide baseline) gets
     # candidates at the density it may reach, not at its own.
     spacing = np.sqrt(h * w / (measured + budget)) * scale
-    points = _corners(mesh.levels, measured + budget)
+    if candidates is None:
+        points = _corners(mesh.levels, measured + budget)
+        # Extrapolated border vertices are no measurement: keeping away from them left the
+        # strip along the frame's side to extrapolation (Middlebury teddy, whose floor
+        # steepens there: frame mean endpoint error 1.51 -> 1.39 px).
+        anchors = ref_lv[np.concatenate([mesh.measured, np.ones(len(added[0]), bool)])]
+        nearest = spacing * MIN_SPACING
+    else:
+        # Beside a step the mesh is as dense as it needs to be there, whatever its spacing
+        # elsewhere: only slivers are kept away.
+        points, anchors, nearest = candidates, ref_lv, STEP_NEAR
     if not len(points):
         return empty
-    # Extrapolated border vertices are no measurement: keeping away from them left the strip
-    # along the frame's side to extrapolation (Middlebury teddy, whose floor steepens there:
-    # frame mean endpoint error 1.51 -> 1.39 px); the patch needs one pixel more than its half
-    # side inside the image.
-    far, _ = cKDTree(ref_lv[np.concatenate([mesh.measured, np.ones(len(added[0]), bool)])]
-                     ).query(points)
+    far, _ = cKDTree(anchors).query(points)
+    # The patch needs one pixel more than its half side inside the image.
     lh, lw = ref_l.shape
     edge = EPI_HALF + 1
     inner = ((points[:, 0] >= edge) & (points[:, 0] < lw - edge) & (points[:, 1] >= edge)
              & (points[:, 1] < lh - edge))
     cells = np.clip(np.rint(points).astype(np.int64), 0, [lw - 1, lh - 1])
     owner = label[cells[:, 1], cells[:, 0]]
-    keep = (far > spacing * MIN_SPACING) & inner & (owner >= 0)
-    # The farthest from the vertices first (the largest gaps), as many as the budget can use.
-    keep = np.flatnonzero(keep)
-    keep = keep[np.argsort(-far[keep], kind="stable")[:EPI_SEARCHED * budget]]
+    keep = np.flatnonzero((far > nearest) & inner & (owner >= 0))
+    if candidates is None:
+        # The farthest from the vertices first (the largest gaps).
+        keep = keep[np.argsort(-far[keep], kind="stable")]
+    keep = keep[:EPI_SEARCHED * budget]  # as many as the budget can use
     points, owner = points[keep], owner[keep]
     counts["candidates"] = len(points)
     if not len(points):

@@ -65,3 +65,31 @@ def book_points(crease: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
     ref_arr = np.array(ref, dtype=np.float64)
     mx, my = book_map(ref_arr[:, 0], ref_arr[:, 1], crease)
     return ref_arr, np.stack([mx, my], axis=1)
+
+
+def box_front(
+    size: tuple[int, int] = (320, 240),
+    box: tuple[int, int, int, int] = (110, 70, 210, 170),
+    shifts: tuple[int, int] = (4, 16),
+    seed: int = 0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A box in front of a wall, seen by a rectified stereo pair: reference, moving (uint8) and
+    the true disparity of every reference pixel (reference ``(x, y)`` is moving
+    ``(x - d, y)``).
+
+    The wall moves ``shifts[0]`` pixels left, the box ``box = (x0, y0, x1, y1)`` (reference
+    pixels, end excluded) ``shifts[1]``: depth steps along the box's outline, horizontal
+    epipolar lines.
+    """
+    w, h = size
+    x0, y0, x1, y1 = box
+    wall_shift, box_shift = shifts
+    wall = texture((h, w + wall_shift), seed)  # column c: moving x = c - wall_shift
+    front = texture((h, w), seed + 1)  # column c: moving x = c
+    reference = wall[:, :w].copy()
+    reference[y0:y1, x0:x1] = front[y0:y1, x0 - box_shift:x1 - box_shift]
+    moving = wall[:, wall_shift:].copy()
+    moving[y0:y1, x0 - box_shift:x1 - box_shift] = front[y0:y1, x0 - box_shift:x1 - box_shift]
+    disparity = np.full((h, w), float(wall_shift))
+    disparity[y0:y1, x0:x1] = box_shift
+    return reference, moving, disparity

@@ -3,6 +3,7 @@
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.extent import border_positions, local_affine_extrapolation
@@ -14,15 +15,18 @@ from pwlreg.core.pipeline import register
 from pwlreg.core.refine import (
     CORNER_QUALITY,
     MIN_SPACING,
+    STEP_NEAR,
+    STEP_OFFSET,
     epipolar_pairs,
     guide,
     guided_pairs,
     levels,
+    step_points,
 )
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
-from tests.core.synthetic import book_map, open_book
+from tests.core.synthetic import book_map, box_front, open_book
 
 SIZE, CREASE = (320, 240), 150.0
 
@@ -269,3 +273,70 @@ def test_epipolar_pairs_reach_a_surface_with_no_vertex(monkeypatch: pytest.Monke
     assert len(miss) >= 3 and miss.max() < 0.5, np.sort(miss)
     monkeypatch.setattr("pwlreg.core.refine.EPI_REACH", 0)
     assert len(found_on_block()) == 0
+
+
+#: Rectified views: ``y' = y`` (``x_mov^T F x_ref = y - y'``).
+RECTIFIED = EpipolarModel(
+    "affine", np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), threshold=1.5,
+    num_pairs=0, num_inliers=0, iterations=0, rms=0.0)
+BOX = (110, 70, 210, 170)
+
+
+def test_step_pairs_lie_on_both_sides_of_a_depth_step() -> None:
+    # A box in front of a wall, a mesh with no vertex within 15 px of the box's outline: its
+    # triangles there span the depth step and map like neither surface.
+    ref_img, mov_img, disparity = box_front(box=BOX, seed=2)
+    ref = np.array([(x, y) for x in np.linspace(5.0, 314.0, 8) for y in np.linspace(5.0, 234.0, 6)])
+    mov = ref - np.column_stack([disparity[ref[:, 1].astype(int), ref[:, 0].astype(int)],
+                                 np.zeros(len(ref))])
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    current = guide(levels(ref_img, mov_img), mesh.reference, mesh.moving, mesh.triangles)
+    points = step_points(current)
+    # Beside the outline, on both sides of it, never closer together than STEP_NEAR.
+    x0, y0, x1, y1 = BOX
+    inside = (points[:, 0] >= x0) & (points[:, 0] < x1) & (points[:, 1] >= y0) & (points[:, 1] < y1)
+    to_outline = np.minimum.reduce([np.abs(points[:, 0] - x0), np.abs(points[:, 0] - x1),
+                                    np.abs(points[:, 1] - y0), np.abs(points[:, 1] - y1)])
+    assert inside.sum() >= 8 and (~inside).sum() >= 8, points
+    # Most beside the outline; the others where the flow inside the box, wrong by up to 12 px,
+    # is not smooth.
+    assert np.mean(to_outline < STEP_OFFSET + 3) > 0.5, np.sort(to_outline)
+    gaps, _ = cKDTree(points).query(points, k=2)
+    assert gaps[:, 1].min() >= STEP_NEAR
+
+    none = np.zeros((0, 2))
+    found = epipolar_pairs(current, prepare_images(ref_img, mov_img, 16), RECTIFIED,
+                           added=(none, none), measured=len(ref), budget=len(points),
+                           epsilon=0.01, epsilon_pixels=250.0, candidates=points)
+    assert found.counts["inserted"] == len(found.reference) >= 16, found.counts
+    cells = np.rint(found.reference).astype(int)
+    truth = found.reference - np.column_stack([disparity[cells[:, 1], cells[:, 0]],
+                                               np.zeros(len(cells))])
+    miss = np.hypot(*(found.moving - truth).T)
+    assert np.median(miss) < 0.3 and miss.max() < 1.5, np.sort(miss)[-5:]
+    on_box = (cells[:, 0] >= x0) & (cells[:, 0] < x1) & (cells[:, 1] >= y0) & (cells[:, 1] < y1)
+    assert on_box.sum() >= 4 and (~on_box).sum() >= 4
+    # The mesh was wrong there by pixels (the box moves 12 px more than the wall).
+    mx, my, _ = piecewise_map(mesh.reference, mesh.moving, mesh.triangles, disparity.shape)
+    old_miss = np.hypot(mx[cells[:, 1], cells[:, 0]] - truth[:, 0],
+                        my[cells[:, 1], cells[:, 0]] - truth[:, 1])
+    assert np.mean(old_miss) > 2.0 and np.mean(miss) < np.mean(old_miss) / 5
+
+
+def test_step_pairs_lower_the_error_of_a_mesh_across_depth_steps() -> None:
+    # The whole pipeline with the client's sparse points refined (insert_vertices="always"):
+    # the step source puts vertices along the box's outline, and the mean error over the
+    # pixels the wall and the box both show falls.
+    ref_img, mov_img, disparity = box_front(box=BOX, seed=2)
+    xs, ys = np.linspace(5.0, 314.0, 6), np.linspace(5.0, 234.0, 5)
+    ref = np.array([(x, y) for x in xs for y in ys])
+    mov = ref - np.column_stack([disparity[ref[:, 1].astype(int), ref[:, 0].astype(int)],
+                                 np.zeros(len(ref))])
+    r = register(ref_img, mov_img, (ref, mov), {"extent": "hull", "insert_vertices": "always"})
+    assert r.origins.count("step") == r.insertion["step inserted"] >= 10, r.insertion
+    h, w = disparity.shape
+    mx, my, label = piecewise_map(r.reference_vertices, r.moving_vertices, r.final_triangles,
+                                  (h, w))
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    err = np.hypot(mx - (xx - disparity), my - yy)[label >= 0]
+    assert np.mean(err) < 0.5, np.mean(err)
