@@ -78,12 +78,15 @@ class Move:
         For insertions: None to draw on the budget the sources share
         (:func:`core.pipeline.insertion_budget`), or a budget of its own over all rounds, as a
         share of the matched pairs.
+    rounds : tuple of int or None
+        For insertions: the rounds it runs in (0 the first; None: every round).
     """
 
     kind: str
     reason: str
     find: Finder | None = None
     own_budget: float | None = None
+    rounds: tuple[int, ...] | None = None
 
 
 def _flow(mesh: Guide, search: Search) -> Insertion:
@@ -132,10 +135,12 @@ MOVES: dict[str, Move] = {
         "insertion",
         f"a reference point {STEP_OFFSET:g} px of the level beside a jump of the residual "
         "optical flow (a depth step inside a triangle), matched along its epipolar line as the "
-        "epipolar move's corners are; it has a budget of its own, half the matched pairs, "
-        "since a step needs vertices on both sides however dense the mesh is elsewhere",
+        "epipolar move's corners are, in the first round (it reads the flow the flow move "
+        "measured); it has a budget of its own, half the matched pairs, since a step needs "
+        "vertices on both sides however dense the mesh is elsewhere",
         _step,
         own_budget=0.5,
+        rounds=(0,),
     ),
     "swap": Move(
         "swap",

@@ -265,7 +265,7 @@ def register(
         insertion = {"inserted": 0}
         matched = len(conjugate.reference)
         by_source = dict.fromkeys((name for name, _ in insertions()), 0)
-        for _ in range(INSERTION_ROUNDS):
+        for round_ in range(INSERTION_ROUNDS):
             current = guide(grey, mesh.reference, mesh.moving, mesh.triangles,
                             extrapolated=tri_report.extrapolated)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
@@ -275,6 +275,8 @@ def register(
                         n for k, n in by_source.items() if MOVES[k].own_budget is None)
                 else:
                     budget = int(move.own_budget * matched) - by_source[name]
+                if move.rounds is not None and round_ not in move.rounds:
+                    continue
                 found = move.find(current, Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
