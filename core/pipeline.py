@@ -270,13 +270,13 @@ def register(
                             extrapolated=tri_report.extrapolated)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
             for name, move in insertions():
+                if move.rounds is not None and round_ not in move.rounds:
+                    continue
                 if move.own_budget is None:
                     budget = insertion_budget(matched) - matched - sum(
                         n for k, n in by_source.items() if MOVES[k].own_budget is None)
                 else:
                     budget = int(move.own_budget * matched) - by_source[name]
-                if move.rounds is not None and round_ not in move.rounds:
-                    continue
                 found = move.find(current, Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
