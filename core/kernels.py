@@ -265,40 +265,13 @@ def _information(s_ab: float, s_a: float, s_b: float, n: float):  # type: ignore
 
 
 @njit(cache=True)
-def information(hist, bins, mi, nmi):  # type: ignore[no-untyped-def]
-    """MI and NMI in bits of each row of ``hist`` (K, bins * bins) of float counts, written to
-    ``mi``/``nmi`` (:func:`_information`)."""
-    pa = np.empty(bins)
-    pb = np.empty(bins)
-    for r in range(hist.shape[0]):
-        row = hist[r]
-        pa[:] = 0.0
-        pb[:] = 0.0
-        s_ab = 0.0
-        for a in range(bins):
-            for b in range(bins):
-                c = row[a * bins + b]
-                pa[a] += c
-                pb[b] += c
-                s_ab += _xlogx(c)
-        n = 0.0
-        s_a = 0.0
-        s_b = 0.0
-        for a in range(bins):
-            n += pa[a]
-            s_a += _xlogx(pa[a])
-            s_b += _xlogx(pb[a])
-        mi[r], nmi[r] = _information(s_ab, s_a, s_b, n)
-
-
-@njit(cache=True)
 def summed_information(hist, rows, bins, mi, nmi, pixels, table):  # type: ignore[no-untyped-def]
-    """:func:`information` of sums of rows of ``hist``, without gathering them first.
+    """MI and NMI in bits (:func:`_information`) of sums of rows of the joint counts ``hist``
+    (R, bins * bins), without gathering them first.
 
-    Output ``k`` is for ``hist[rows[k]].sum(axis=0)``, ``rows`` (K, S) int64; ``pixels[k]`` gets
-    its total count; ``table`` is :func:`xlogx_table`. The sums are exact integers, summed in
-    the same order, so the values are those of :func:`information` on the summed histograms,
-    bit for bit.
+    Output ``k`` is for ``hist[rows[k]].sum(axis=0)``, ``rows`` (K, S) int64 (S = 1: the rows
+    themselves); ``pixels[k]`` gets its total count; ``table`` is :func:`xlogx_table`. The sums
+    are exact integers, so the values depend on the summed counts only, bit for bit.
     """
     nb = bins * bins
     counts = np.empty(nb, dtype=np.int64)
@@ -310,8 +283,7 @@ def summed_information(hist, rows, bins, mi, nmi, pixels, table):  # type: ignor
             src = hist[rows[k, s]]
             for c in range(nb):
                 counts[c] += src[c]
-        # The marginals and the total summed as integers: exact, so equal to the float sums of
-        # information() (integers below 2**53).
+        # The marginals and the total summed as integers: exact.
         ca[:] = 0
         cb[:] = 0
         s_ab = 0.0

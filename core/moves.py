@@ -94,23 +94,20 @@ def _flow(mesh: Guide, search: Search) -> Insertion:
                         epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels)
 
 
-def _epipolar(mesh: Guide, search: Search) -> Insertion | None:
-    if search.epipolar is None:
-        return None
-    return epipolar_pairs(
-        mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
-        budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
-    )
+def _along_lines(candidates: Callable[[Guide], np.ndarray] | None) -> Finder:
+    """A finder of pairs matched along the epipolar lines (:func:`core.refine.epipolar_pairs`):
+    of the reference corners, or of the points ``candidates(mesh)`` gives."""
 
+    def find(mesh: Guide, search: Search) -> Insertion | None:
+        if search.epipolar is None:
+            return None
+        return epipolar_pairs(
+            mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
+            budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
+            candidates=None if candidates is None else candidates(mesh),
+        )
 
-def _step(mesh: Guide, search: Search) -> Insertion | None:
-    if search.epipolar is None:
-        return None
-    return epipolar_pairs(
-        mesh, search.images, search.epipolar, added=search.added, measured=search.measured,
-        budget=search.budget, epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels,
-        candidates=step_points(mesh),
-    )
+    return find
 
 
 MOVES: dict[str, Move] = {
@@ -129,7 +126,7 @@ MOVES: dict[str, Move] = {
         "correlated, peaked, without a rival peak, confirmed both ways, "
         "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
         "information of the triangle they split",
-        _epipolar,
+        _along_lines(None),
     ),
     "step": Move(
         "insertion",
@@ -138,7 +135,7 @@ MOVES: dict[str, Move] = {
         "epipolar move's corners are, in the first round (it reads the flow the flow move "
         "measured); it has a budget of its own, half the matched pairs, since a step needs "
         "vertices on both sides however dense the mesh is elsewhere",
-        _step,
+        _along_lines(step_points),
         own_budget=0.5,
         rounds=(0,),
     ),
