@@ -245,8 +245,10 @@ def register(
     # 8 pixels mean the same on any photo, and cost a fraction of a full-resolution pass.
     level, scale = reduced(images, SCORING_SIDE, bins=SCORING_BINS)
 
-    def build(ref_pts: np.ndarray, mov_pts: np.ndarray) -> tuple[Mesh, TriangulationReport]:
+    def build(ref_pts: np.ndarray, mov_pts: np.ndarray,
+              optional: np.ndarray | None = None) -> tuple[Mesh, TriangulationReport]:
         extrapolated = np.zeros(len(ref_pts), bool)
+        optional = extrapolated if optional is None else optional
         if opts.extent == "frame":
             border_ref, border_mov = frame_vertices(
                 ref_pts, mov_pts, reference.shape[:2], images=level, scale=scale
@@ -254,7 +256,9 @@ def register(
             ref_pts = np.concatenate([ref_pts, border_ref])
             mov_pts = np.concatenate([mov_pts, border_mov])
             extrapolated = np.concatenate([extrapolated, np.ones(len(border_ref), bool)])
-        return initial_mesh(ref_pts, mov_pts, opts.min_triangle_area, extrapolated)
+            optional = np.concatenate([optional, np.zeros(len(border_ref), bool)])
+        return initial_mesh(ref_pts, mov_pts, opts.min_triangle_area, extrapolated,
+                            optional=optional)
 
     mesh, tri_report = build(conjugate.reference, conjugate.moving)
     insertion = None
@@ -292,7 +296,8 @@ def register(
                 break
             ref_meas = np.concatenate([ref_meas, new_ref])
             mov_meas = np.concatenate([mov_meas, new_mov])
-            mesh, tri_report = build(ref_meas, mov_meas)
+            # A new pair that makes a triangle too small is left out, not the triangle.
+            mesh, tri_report = build(ref_meas, mov_meas, inserted_mask(origin))
     # Which move (or the matcher) put each vertex there: the mesh deduplicated and reordered
     # the measured pairs, and added the extrapolated border.
     _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)

@@ -23,6 +23,8 @@ class TriangulationReport:
         1/256 px) repeated an earlier pair's.
     small_triangles_removed : int
         Delaunay triangles with reference area below ``min_triangle_area`` (px^2).
+    optional_dropped : int
+        Optional pairs left out because a triangle of theirs was that small.
     repairs : list of dict
         Patch-reversal repairs in order: ``{"action": "swap", "removed": [i, j], "added":
         [k, l]}`` or ``{"action": "remove", "triangle": [a, b, c], "reason": ...}``.
@@ -34,6 +36,7 @@ class TriangulationReport:
 
     duplicates_removed: int = 0
     small_triangles_removed: int = 0
+    optional_dropped: int = 0
     repairs: list[dict] = field(default_factory=list)
     unrepaired: int = 0
     extrapolated: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
@@ -43,6 +46,7 @@ class TriangulationReport:
         return {
             "duplicates_removed": self.duplicates_removed,
             "small_triangles_removed": self.small_triangles_removed,
+            "optional_pairs_dropped": self.optional_dropped,
             "patch_reversal_repairs": self.repairs,
             "unrepaired_patch_reversals": self.unrepaired,
             "extrapolated_vertices": int(np.count_nonzero(self.extrapolated)),
@@ -140,6 +144,8 @@ def initial_mesh(
     moving_points: np.ndarray,
     min_triangle_area: float,
     extrapolated: np.ndarray | None = None,
+    *,
+    optional: np.ndarray | None = None,
 ) -> tuple[Mesh, TriangulationReport]:
     """Build the mesh the search starts from.
 
@@ -147,15 +153,32 @@ def initial_mesh(
     the moving points, triangles with reference area below ``min_triangle_area`` (px^2)
     discarded, then patch reversals repaired (:func:`repair_patch_reversals`).
     ``extrapolated`` flags the pairs whose moving position was not measured; the report carries
-    the flags of the vertices kept.
+    the flags of the vertices kept. ``optional`` flags pairs that may be left out instead of a
+    triangle: a small triangle with one of them loses the last of its optional vertices and
+    the points are triangulated again, so that pairs added near others never open a hole.
     """
     ref, mov, kept = _deduplicate(reference_points, moving_points)
     flags = np.zeros(len(kept), bool) if extrapolated is None else np.asarray(extrapolated, bool)
-    tris = delaunay_triangles(ref)
-    areas = triangle_areas(ref[tris])
-    keep = (areas >= min_triangle_area) & (areas > 0)
+    flags = flags[kept]
+    spare = (np.zeros(len(ref), bool) if optional is None
+             else np.asarray(optional, bool)[kept])
+    dropped = 0
+    while True:
+        tris = delaunay_triangles(ref)
+        areas = triangle_areas(ref[tris])
+        keep = (areas >= min_triangle_area) & (areas > 0)
+        own = spare[tris] & ~keep[:, None]
+        rows = np.flatnonzero(own.any(axis=1))
+        if not len(rows):
+            break
+        drop = np.unique(np.where(own[rows], tris[rows], -1).max(axis=1))
+        left = np.ones(len(ref), bool)
+        left[drop] = False
+        ref, mov, flags, spare = ref[left], mov[left], flags[left], spare[left]
+        dropped += len(drop)
     report = TriangulationReport(
-        duplicates_removed=int((~kept).sum()), extrapolated=flags[kept].copy()
+        duplicates_removed=int((~kept).sum()), extrapolated=flags.copy(),
+        optional_dropped=dropped,
     )
     report.small_triangles_removed = int((~keep).sum())
     mesh = Mesh(ref, mov, tris[keep])

@@ -24,6 +24,34 @@ def test_small_triangles_discarded():
     assert min(areas) >= 25
 
 
+def _area(points: np.ndarray, triangles: np.ndarray) -> float:
+    d1 = points[triangles[:, 1]] - points[triangles[:, 0]]
+    d2 = points[triangles[:, 2]] - points[triangles[:, 0]]
+    return float(np.abs(d1[:, 0] * d2[:, 1] - d1[:, 1] * d2[:, 0]).sum() / 2)
+
+
+def test_optional_pair_left_out_instead_of_a_triangle():
+    # A pair 0.3 px inside the square's edge makes a sliver with that edge: removing the sliver
+    # opens a hole in the mesh; leaving the (optional) pair out does not.
+    g = np.array([25.0, 50.0, 75.0])
+    inner = np.stack(np.meshgrid(g, g), axis=-1).reshape(-1, 2) + [[3.0, 1.0]]
+    ref = np.concatenate([[[0, 0], [100, 0], [0, 100], [100, 100]], inner, [[50, 0.3]]])
+    optional = np.zeros(len(ref), bool)
+    optional[-1] = True
+    holed, report = initial_mesh(ref, ref, 25)
+    assert report.small_triangles_removed >= 1
+    assert _area(holed.reference, holed.triangles) < 100 * 100 - 1
+    whole, report = initial_mesh(ref, ref, 25, optional=optional)
+    assert report.small_triangles_removed == 0 and report.optional_dropped == 1
+    assert len(whole.reference) == len(ref) - 1
+    assert not np.any(np.all(np.isclose(whole.reference, [50, 0.3]), axis=1))
+    assert _area(whole.reference, whole.triangles) == pytest.approx(100 * 100)
+    # A small triangle of given pairs only is still removed: they are not to be dropped.
+    sliver = np.concatenate([ref[:-1], [[50, 0.2]]])
+    _, report = initial_mesh(sliver, sliver, 25, optional=np.zeros(len(sliver), bool))
+    assert report.small_triangles_removed >= 1 and report.optional_dropped == 0
+
+
 def test_collinear_and_too_few_points_are_clear_errors():
     with pytest.raises(InputError, match="collinear"):
         initial_mesh(
