@@ -246,9 +246,11 @@ def register(
     level, scale = reduced(images, SCORING_SIDE, bins=SCORING_BINS)
 
     def build(ref_pts: np.ndarray, mov_pts: np.ndarray,
-              optional: np.ndarray | None = None) -> tuple[Mesh, TriangulationReport]:
+              origins: list[str]) -> tuple[Mesh, TriangulationReport]:
         extrapolated = np.zeros(len(ref_pts), bool)
-        optional = extrapolated if optional is None else optional
+        # A pair of the insertion that makes a triangle too small is left out, not the
+        # triangle.
+        optional = inserted_mask(origins)
         if opts.extent == "frame":
             border_ref, border_mov = frame_vertices(
                 ref_pts, mov_pts, reference.shape[:2], images=level, scale=scale
@@ -260,10 +262,10 @@ def register(
         return initial_mesh(ref_pts, mov_pts, opts.min_triangle_area, extrapolated,
                             optional=optional)
 
-    mesh, tri_report = build(conjugate.reference, conjugate.moving)
     insertion = None
     ref_meas, mov_meas = conjugate.reference, conjugate.moving
     origin = ["client" if conjugate.source == "client" else "matched"] * len(ref_meas)
+    mesh, tri_report = build(ref_meas, mov_meas, origin)
     if made is not None:
         grey = made.result()
         insertion = {"inserted": 0}
@@ -296,8 +298,7 @@ def register(
                 break
             ref_meas = np.concatenate([ref_meas, new_ref])
             mov_meas = np.concatenate([mov_meas, new_mov])
-            # A new pair that makes a triangle too small is left out, not the triangle.
-            mesh, tri_report = build(ref_meas, mov_meas, inserted_mask(origin))
+            mesh, tri_report = build(ref_meas, mov_meas, origin)
     # Which move (or the matcher) put each vertex there: the mesh deduplicated and reordered
     # the measured pairs, and added the extrapolated border.
     _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)

@@ -177,7 +177,7 @@ def initial_mesh(
         ref, mov, flags, spare = ref[left], mov[left], flags[left], spare[left]
         dropped += len(drop)
     report = TriangulationReport(
-        duplicates_removed=int((~kept).sum()), extrapolated=flags.copy(),
+        duplicates_removed=int((~kept).sum()), extrapolated=flags,
         optional_dropped=dropped,
     )
     report.small_triangles_removed = int((~keep).sum())
