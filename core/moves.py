@@ -20,6 +20,7 @@ from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.refine import (
     EPI_REACH,
     STEP_OFFSET,
+    STEP_WINDOW,
     Guide,
     Insertion,
     epipolar_pairs,
@@ -94,9 +95,12 @@ def _flow(mesh: Guide, search: Search) -> Insertion:
                         epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels)
 
 
-def _along_lines(candidates: Callable[[Guide], np.ndarray] | None) -> Finder:
+def _along_lines(
+    candidates: Callable[[Guide], tuple[np.ndarray, np.ndarray]] | None,
+) -> Finder:
     """A finder of pairs matched along the epipolar lines (:func:`core.refine.epipolar_pairs`):
-    of the reference corners, or of the points ``candidates(mesh)`` gives."""
+    of the reference corners, or of the points (and their patches' offsets) ``candidates(mesh)``
+    gives."""
 
     def find(mesh: Guide, search: Search) -> Insertion | None:
         if search.epipolar is None:
@@ -132,9 +136,10 @@ MOVES: dict[str, Move] = {
         "insertion",
         f"a reference point {STEP_OFFSET:g} px of the level beside a jump of the residual "
         "optical flow (a depth step inside a triangle), matched along its epipolar line as the "
-        "epipolar move's corners are, in the first round (it reads the flow the flow move "
-        "measured); it has a budget of its own, half the matched pairs, since a step needs "
-        "vertices on both sides however dense the mesh is elsewhere",
+        f"epipolar move's corners are, by a patch centred {STEP_WINDOW:g} px farther from the "
+        "jump (on the point's side of the step), in the first round (it reads the flow the "
+        "flow move measured); it has a budget of its own, half the matched pairs, since a "
+        "step needs vertices on both sides however dense the mesh is elsewhere",
         _along_lines(step_points),
         own_budget=0.5,
         rounds=(0,),
