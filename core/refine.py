@@ -662,8 +662,11 @@ def epipolar_pairs(
     odd = (np.linalg.norm(linear - typical, axis=(1, 2))
            > EPI_ODD_MAP * np.linalg.norm(typical, axis=(1, 2)))
     linear = np.where(odd[:, None, None], typical, linear)
+    # Where the mesh maps the patches' centres (the search's segment) and the sites (the size
+    # of the correction), in one pass.
+    predicted, at_sites = np.split(_predicted(mesh, np.concatenate([points, sites])), 2)
     line = _lines(F, points)
-    foot = _foot(line, _predicted(mesh, points))
+    foot = _foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.
     _, near = cKDTree(ref_lv).query(points, k=min(EPI_NEIGHBOURS, len(ref_lv)))
     near = near.reshape(len(points), -1)
@@ -710,7 +713,7 @@ def epipolar_pairs(
         wanted=np.arange(len(ref_v) + len(idx)) >= len(ref_v))[len(ref_v):]
     ok[idx[contradicted]] = False
     counts["neighbours"] = int(ok.sum())
-    size = np.hypot(*(best_xy - _predicted(mesh, points)).T) / scale
+    size = np.hypot(*(best_xy - at_sites).T) / scale
     return _chosen(images, ref_v, mov_v, tris, reference, moving, size, ok, counts,
                    budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
 
@@ -718,11 +721,11 @@ def epipolar_pairs(
 def _predicted(mesh: Guide, points: np.ndarray) -> np.ndarray:
     """Where the mesh maps ``points`` (pixels of the level); NaN where a point's bilinear
     neighbourhood leaves the mesh (the map is -1 there)."""
-    lh, lw = mesh.label.shape
+    label = mesh.label
+    lh, lw = label.shape
     predicted = np.column_stack([_sample(mesh.map_x, points), _sample(mesh.map_y, points)])
     x0, y0 = np.floor(points).astype(np.int64).T
     x1, y1 = np.minimum(x0 + 1, lw - 1), np.minimum(y0 + 1, lh - 1)
-    label = mesh.label
     unmapped = (label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0) | (label[y1, x1] < 0)
     predicted[unmapped] = np.nan
     return predicted
