@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from pwlreg.core.flow import forward_backward_error, residual_flows
+from pwlreg.core.flow import flow_scale, forward_backward_error, residual_flows
 from pwlreg.core.imaging import to_gray8
 from pwlreg.core.raster import triangle_areas
 from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
@@ -79,6 +79,21 @@ RESIDUAL_FLOW_SIDE = 160
 #: 5 px off; 16-39 % on `good` results with 11-25 % of their pixels more than 5 px off.
 RESIDUAL_DOUBTFUL = 0.25
 
+#: Least texture (grey levels per pixel: the square root of the smaller eigenvalue of the
+#: structure tensor over 5x5 pixels of the residual flow's finest scale) for the flow to
+#: measure a pixel's motion. On a blank backdrop the flow follows nothing and its
+#: forward-backward test fails: the trust suite's open books, registered within 0.35 px,
+#: had 54-58 % of their extrapolated border "off", nearly all of it blank; over the textured
+#: part 0-2 % of the frame.
+FLOW_TEXTURE = 1.0
+
+#: Share of the reference frame, in the extrapolated border and textured for the flow
+#: (:data:`FLOW_TEXTURE`), that the residual flow may find off in a ``good`` result. Measured
+#: (python -m bench.trust): at most 0.086 on results within 2 px over the frame; 0.21 on a
+#: gable whose border is 33 px off over the floor behind it (9.4 px over the frame, 1.3 px
+#: over the measured part), 0.14 on an L-shape 5.4 px off (1.1 px measured).
+EXTRAPOLATED_OFF = 0.1
+
 Rule = tuple[Callable[[dict], bool], str]
 
 #: Rules of the verdict, each a test over the figures and the reason it gives.
@@ -111,6 +126,10 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
      "the extrapolated border ({extrapolated_coverage:.0%} of the frame) disagrees with the "
      "images ({extrapolated_low_consistency_share:.0%} of it is not locally consistent): "
      "trust the measured part only, or use extent=hull"),
+    (lambda f: f["extrapolated_off_share"] > EXTRAPOLATED_OFF,
+     "the residual optical flow finds {extrapolated_off_share:.0%} of the frame, in the "
+     "extrapolated border, off by more than " + f"{RESIDUAL_PX:g}" + " px of the scoring "
+     "level: trust the measured part only, or use extent=hull"),
 )
 
 
@@ -130,8 +149,8 @@ class Quality:
         candidates, or over the valid client pairs), ``measured_coverage``, ``mesh_coverage``
         and ``mapped_coverage`` (shares of the reference frame), ``mi_before``/``mi_after``
         (bits), ``nmi_before``/``nmi_after``, ``global_peak``, ``low_consistency_share`` and
-        ``textured_share`` (of the measured mesh area), ``residual_share``
-        (:func:`residual_share`).
+        ``textured_share`` (of the measured mesh area), ``residual_share`` and
+        ``extrapolated_off_share`` (:func:`residual_share`).
     triangle_scores : ndarray, shape (T,)
         Per final triangle, the share of its MI lost one step away (1 = sharp peak, <= 0 = no
         peak); NaN for a triangle without texture.
@@ -201,8 +220,10 @@ def residual_share(
     moving_vertices: np.ndarray,
     triangles: np.ndarray,
     measured: np.ndarray,
-) -> float:
-    """Share of the measured mesh's pixels that the residual optical flow finds off.
+) -> tuple[float, float]:
+    """Share of the measured mesh's pixels that the residual optical flow finds off, and the
+    share of the frame that it finds off in the rest of the mesh where the reference has the
+    texture to tell (:data:`FLOW_TEXTURE`).
 
     The moving image is resampled through the mesh; the DIS flow between the reference and
     that registered image (:func:`core.flow.residual_flows`) is the mesh's residual error
@@ -220,9 +241,12 @@ def residual_share(
 
     Returns
     -------
-    float
+    measured_share : float
         Share of the judged triangles' pixels mapped inside the moving image that are off
         (1.0 when there are none).
+    outer_share : float
+        Share of the frame's pixels in the other triangles, mapped inside the moving image,
+        textured and off.
     """
     shape = images.shape
     reference = to_gray8(images.reference_values.reshape(shape))
@@ -231,16 +255,36 @@ def residual_share(
                                         dtype=np.float32, outside=-1.0)
     mh, mw = moving.shape
     seen = (label >= 0) & (map_x >= 0) & (map_x <= mw - 1) & (map_y >= 0) & (map_y <= mh - 1)
-    judged = seen & np.asarray(measured, dtype=bool)[np.maximum(label, 0)]
+    inside = np.asarray(measured, dtype=bool)[np.maximum(label, 0)]
+    judged, outer = seen & inside, seen & ~inside
     if not judged.any():
-        return 1.0
+        return 1.0, 0.0
     resampled = cv2.remap(moving, map_x, map_y, cv2.INTER_LINEAR)
     # Unmapped pixels show the reference itself: no false motion at the mesh's border.
     registered = np.where(seen, resampled, reference)
     forward, backward = residual_flows(reference, registered, side=RESIDUAL_FLOW_SIDE)
     off = (np.hypot(forward[..., 0], forward[..., 1]) > RESIDUAL_PX) | (
         forward_backward_error(forward, backward) > RESIDUAL_FB_PX)
-    return float(np.count_nonzero(off & judged)) / float(np.count_nonzero(judged))
+    outer_off = np.count_nonzero(off & outer & flow_texture(reference, RESIDUAL_FLOW_SIDE))
+    return (float(np.count_nonzero(off & judged)) / float(np.count_nonzero(judged)),
+            outer_off / off.size)
+
+
+def flow_texture(image: np.ndarray, side: int) -> np.ndarray:
+    """Pixels of ``image`` (grey) where the residual flow, whose finest scale brings it to
+    ``side`` pixels (:func:`core.flow.flow_scale`), can measure motion both ways: the smaller
+    eigenvalue of the structure tensor over 5x5 pixels of that scale reaches
+    :data:`FLOW_TEXTURE` squared."""
+    h, w = image.shape[:2]
+    step = 2 ** flow_scale(image.shape, side)
+    small = cv2.resize(image, (max(w // step, 1), max(h // step, 1)),
+                       interpolation=cv2.INTER_AREA).astype(np.float32)
+    # Sobel's 3x3 derivative is eight times the gradient.
+    gx, gy = (cv2.Sobel(small, cv2.CV_32F, dx, dy) / 8.0 for dx, dy in ((1, 0), (0, 1)))
+    xx, yy, xy = (cv2.boxFilter(a, -1, (5, 5)) for a in (gx * gx, gy * gy, gx * gy))
+    smaller = 0.5 * (xx + yy) - np.sqrt((0.5 * (xx - yy)) ** 2 + xy ** 2)
+    return cv2.resize((smaller >= FLOW_TEXTURE ** 2).astype(np.uint8), (w, h),
+                      interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
 def assess(
@@ -325,8 +369,9 @@ def assess(
         "extrapolated_coverage": float(areas[~measured].sum()) / frame_area,
         "extrapolated_low_consistency_share": outer_low / outer_area if outer_area else 0.0,
         "textured_share": textured_area / measured_area if measured_area > 0 else 0.0,
-        "residual_share": residual_share(images, ref_level, mov_level, tris, measured),
     }
+    figures["residual_share"], figures["extrapolated_off_share"] = residual_share(
+        images, ref_level, mov_level, tris, measured)
     # Spread thinning is not a rejection: the share counts the pairs the checks let through.
     if "spread" in rejected and candidates:
         figures["inlier_share"] = min(1.0, (kept + rejected["spread"]) / candidates)

@@ -5,7 +5,13 @@ import pytest
 
 from pwlreg.core.errors import UnreliableResultError
 from pwlreg.core.pipeline import register
-from pwlreg.core.quality import peak_scores, residual_share
+from pwlreg.core.quality import (
+    EXTRAPOLATED_OFF,
+    RESIDUAL_FLOW_SIDE,
+    flow_texture,
+    peak_scores,
+    residual_share,
+)
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import delaunay_triangles
 from tests.core.synthetic import book_map, open_book, texture
@@ -91,10 +97,10 @@ def test_the_residual_flow_finds_the_part_of_a_mesh_across_a_fold_that_is_off():
     reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
     images = prepare_images(reference, moving, 16)
     ref, mov, tris = _book_mesh([2.0, 60.0, 120.0, 180.0, 237.0])  # a column on the crease
-    right = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
+    right, _ = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
     # Only the outer columns: the triangles span the fold, 17 px off at the crease.
     ref, mov, tris = _book_mesh([2.0, 20.0, 220.0, 237.0])
-    across = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
+    across, _ = residual_share(images, ref, mov, tris, np.ones(len(tris), bool))
     assert right < 0.05
     assert across > 0.4
 
@@ -107,3 +113,38 @@ def test_a_mesh_whose_triangles_span_an_unseen_fold_is_not_good():
     assert r.quality.figures["residual_share"] > 0.25
     assert r.quality.verdict != "good"
     assert any("residual optical flow" in reason for reason in r.quality.reasons)
+
+
+def _left_page_carried_on() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The open book's mesh with the right page's vertices extrapolated from the left page
+    (the identity there): up to 41 px off at the frame's side."""
+    ref, mov, tris = _book_mesh([2.0, 60.0, 120.0, 180.0, 237.0])
+    right = ref[:, 0] > 120.0
+    wrong = np.where(right[:, None], ref, mov)
+    return ref, wrong, tris, ~right[tris].any(axis=1)
+
+
+def test_the_residual_flow_judges_the_extrapolated_border_where_it_has_texture():
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
+    ref, wrong, tris, measured = _left_page_carried_on()
+    inside, border = residual_share(prepare_images(reference, moving, 16), ref, wrong, tris,
+                                    measured)
+    assert inside < 0.05
+    assert border > 0.3  # of the frame: most of the right page
+    # A blank right page: the flow follows nothing there, and says nothing of it.
+    reference[:, 121:], moving[:, 120:] = 128, 128
+    _, blank = residual_share(prepare_images(reference, moving, 16), ref, wrong, tris,
+                              measured)
+    assert blank < 0.02
+    assert not flow_texture(reference, RESIDUAL_FLOW_SIDE)[:, 130:].any()
+    assert flow_texture(reference, RESIDUAL_FLOW_SIDE)[10:-10, 10:110].mean() > 0.9
+
+
+def test_a_border_extrapolated_wrongly_over_a_textured_surface_is_not_good():
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
+    ref, mov, _ = _book_mesh([2.0, 30.0, 60.0, 90.0, 110.0])
+    r = register(reference, moving, (ref, mov),
+                 {"optimizer": "none", "epipolar_filter": False, "extent": "frame"})
+    assert r.quality.figures["extrapolated_off_share"] > EXTRAPOLATED_OFF
+    assert r.quality.verdict != "good"
+    assert any("in the extrapolated border" in reason for reason in r.quality.reasons)
