@@ -1,7 +1,8 @@
 """Trust report: automatic registration on scenes with exact truth, and its verdict.
 
-Run ``python -m bench.trust`` (about 6 minutes on 2 cores; ``--quick`` for a subset, ``--out
-DIR`` for the output folder, default ``bench/results/trust/``). Every case is registered as a
+Run ``python -m bench.trust`` (about 6 minutes on 2 cores; ``--quick`` for a subset,
+``--seeds 2,3`` for scenes the thresholds were not set on, ``--out DIR`` for the output folder,
+default ``bench/results/trust/``). Every case is registered as a
 client without points would: :func:`core.pipeline.register` with default options (automatic
 matching, ``extent="frame"``). It writes ``report.md`` and ``results.json``.
 
@@ -408,11 +409,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="a subset (about a minute)")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--no-speed", action="store_true", help="skip the speed section")
+    parser.add_argument("--seeds", help="comma-separated scene seeds instead of 0,1 (scenes "
+                        "the verdict's thresholds were not set on, e.g. 2,3)")
     args = parser.parse_args(argv)
+    seeds = tuple(int(s) for s in args.seeds.split(",")) if args.seeds else None
     warm_up()
     t0 = time.perf_counter()
     rows = []
-    for case in build_cases(args.quick):
+    for case in build_cases(args.quick, seeds):
         row = run_case(case)
         rows.append(row)
         print(f"{row['name']:45s} {row['verdict']:10s} pairs {row.get('points', 0):4d} "
