@@ -80,19 +80,26 @@ RESIDUAL_FLOW_SIDE = 160
 RESIDUAL_DOUBTFUL = 0.25
 
 #: Least texture (grey levels per pixel: the square root of the smaller eigenvalue of the
-#: structure tensor over 5x5 pixels of the residual flow's finest scale) for the flow to
-#: measure a pixel's motion. On a blank backdrop the flow follows nothing and its
-#: forward-backward test fails: the trust suite's open books, registered within 0.35 px,
-#: had 54-58 % of their extrapolated border "off", nearly all of it blank; over the textured
-#: part 0-2 % of the frame.
+#: structure tensor over 5x5 pixels of the residual flow's finest scale, blurred by a
+#: Gaussian of one pixel there) for the flow to measure a pixel's motion. On a blank backdrop
+#: the flow follows nothing and its forward-backward test fails: the trust suite's open
+#: books, registered within 0.35 px, had 54-58 % of their extrapolated border "off", nearly
+#: all of it blank. Without the blur, sensor noise passed for texture: a book registered
+#: right on a blank backdrop with noise of 3 / 6 / 10 grey levels had 0.8 / 16 / 21 % of its
+#: frame "off" there, with it 0.6-0.7 %.
 FLOW_TEXTURE = 1.0
 
 #: Share of the reference frame, in the extrapolated border and textured for the flow
 #: (:data:`FLOW_TEXTURE`), that the residual flow may find off in a ``good`` result. Measured
-#: (python -m bench.trust): at most 0.086 on results within 2 px over the frame; 0.21 on a
-#: gable whose border is 33 px off over the floor behind it (9.4 px over the frame, 1.3 px
-#: over the measured part), 0.14 on an L-shape 5.4 px off (1.1 px measured).
-EXTRAPOLATED_OFF = 0.1
+#: (python -m bench.trust, scenes of seeds 0-3): at most 0.059 on results within 2 px over
+#: the frame; 0.158 on a gable whose border is 33 px off over the floor behind it (9.4 px over
+#: the frame, 1.3 px over the measured part), 0.106 on an L-shape 5.4 px off (1.1 px
+#: measured). It replaced a
+#: rule on the border's peak test (more than 45 % of it not locally consistent), which missed
+#: those two and called open books right within 0.32 px doubtful for their blank, noisy
+#: backdrop; on the trust suite's scenes of seeds 0-3 every other case that rule flagged is
+#: flagged by this one or another.
+EXTRAPOLATED_OFF = 0.08
 
 Rule = tuple[Callable[[dict], bool], str]
 
@@ -122,10 +129,6 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
      "the residual optical flow finds {residual_share:.0%} of the measured area off by more "
      "than " + f"{RESIDUAL_PX:g}" + " px of the scoring level, or cannot follow it (triangles "
      "across depth steps, occlusions, or a radiometric change the flow does not bear)"),
-    (lambda f: f["extrapolated_coverage"] > 0.1 and f["extrapolated_low_consistency_share"] > 0.45,
-     "the extrapolated border ({extrapolated_coverage:.0%} of the frame) disagrees with the "
-     "images ({extrapolated_low_consistency_share:.0%} of it is not locally consistent): "
-     "trust the measured part only, or use extent=hull"),
     (lambda f: f["extrapolated_off_share"] > EXTRAPOLATED_OFF,
      "the residual optical flow finds {extrapolated_off_share:.0%} of the frame, in the "
      "extrapolated border, off by more than " + f"{RESIDUAL_PX:g}" + " px of the scoring "
@@ -273,12 +276,13 @@ def residual_share(
 def flow_texture(image: np.ndarray, side: int) -> np.ndarray:
     """Pixels of ``image`` (grey) where the residual flow, whose finest scale brings it to
     ``side`` pixels (:func:`core.flow.flow_scale`), can measure motion both ways: the smaller
-    eigenvalue of the structure tensor over 5x5 pixels of that scale reaches
-    :data:`FLOW_TEXTURE` squared."""
+    eigenvalue of the structure tensor over 5x5 pixels of that scale, blurred by one pixel
+    (noise is no texture the two images share), reaches :data:`FLOW_TEXTURE` squared."""
     h, w = image.shape[:2]
     step = 2 ** flow_scale(image.shape, side)
-    small = cv2.resize(image, (max(w // step, 1), max(h // step, 1)),
-                       interpolation=cv2.INTER_AREA).astype(np.float32)
+    small = cv2.GaussianBlur(cv2.resize(image, (max(w // step, 1), max(h // step, 1)),
+                                        interpolation=cv2.INTER_AREA).astype(np.float32),
+                             (0, 0), 1.0)
     # Sobel's 3x3 derivative is eight times the gradient.
     gx, gy = (cv2.Sobel(small, cv2.CV_32F, dx, dy) / 8.0 for dx, dy in ((1, 0), (0, 1)))
     xx, yy, xy = (cv2.boxFilter(a, -1, (5, 5)) for a in (gx * gx, gy * gy, gx * gy))

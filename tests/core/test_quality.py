@@ -148,3 +148,25 @@ def test_a_border_extrapolated_wrongly_over_a_textured_surface_is_not_good():
     assert r.quality.figures["extrapolated_off_share"] > EXTRAPOLATED_OFF
     assert r.quality.verdict != "good"
     assert any("in the extrapolated border" in reason for reason in r.quality.reasons)
+
+
+def test_a_right_registration_over_a_noisy_blank_backdrop_is_good():
+    """Noise is no texture the flow can follow: the border over it is not found off."""
+    reference, moving = open_book(size=(240, 200), crease=120.0, seed=0)
+    rng = np.random.default_rng(3)
+    book = np.zeros(reference.shape, bool)
+    book[20:180, 20:220] = True
+    ref_img = np.where(book, reference, 128 + rng.normal(0, 10.0, reference.shape))
+    mov_img = 128 + rng.normal(0, 10.0, moving.shape)
+    ys, xs = np.nonzero(book)
+    mx, my = book_map(xs.astype(float), ys.astype(float), 120.0)
+    inside = (mx <= 239) & (my <= 199)
+    cols, rows = np.round(mx[inside]).astype(int), np.round(my[inside]).astype(int)
+    mov_img[rows, cols] = moving[rows, cols]
+    ref = rng.uniform([25, 25], [215, 175], (80, 2))
+    mov = np.stack(book_map(ref[:, 0], ref[:, 1], 120.0), axis=1)
+    r = register(np.clip(ref_img, 0, 255).astype(np.uint8),
+                 np.clip(mov_img, 0, 255).astype(np.uint8), (ref, mov))
+    assert r.quality.figures["extrapolated_coverage"] > 0.2
+    assert r.quality.figures["extrapolated_off_share"] < 0.02
+    assert r.quality.verdict == "good", r.quality.reasons
