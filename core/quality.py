@@ -17,7 +17,9 @@ The figures behind the verdict are measured on the result, not assumed:
   reference and the registered image (:mod:`core.flow`) finds off by more than
   :data:`RESIDUAL_PX`, or cannot follow both ways. A triangle across a depth step is right
   near the vertices of one side and tens of pixels off on the other: its mutual information
-  still peaks at the registration, the flow sees the wrong part.
+  still peaks at the registration, the flow sees the wrong part. Over the extrapolated border
+  the same flow gives the share of the *frame* it finds off, where the reference has the
+  texture for it to tell (:func:`flow_texture`).
 
 The thresholds below were calibrated on scenes with exact truth (``python -m bench.trust``,
 which prints the distribution of the true endpoint error per verdict).
@@ -94,11 +96,10 @@ FLOW_TEXTURE = 1.0
 #: (python -m bench.trust, scenes of seeds 0-3): at most 0.059 on results within 2 px over
 #: the frame; 0.158 on a gable whose border is 33 px off over the floor behind it (9.4 px over
 #: the frame, 1.3 px over the measured part), 0.106 on an L-shape 5.4 px off (1.1 px
-#: measured). It replaced a
-#: rule on the border's peak test (more than 45 % of it not locally consistent), which missed
-#: those two and called open books right within 0.32 px doubtful for their blank, noisy
-#: backdrop; on the trust suite's scenes of seeds 0-3 every other case that rule flagged is
-#: flagged by this one or another.
+#: measured). It replaced a rule on the border's peak test (more than 45 % of it not locally
+#: consistent), which missed those two and called open books right within 0.32 px doubtful
+#: for their blank, noisy backdrop; on the trust suite's scenes of seeds 0-3 every other case
+#: that rule flagged is flagged by this one or another.
 EXTRAPOLATED_OFF = 0.08
 
 Rule = tuple[Callable[[dict], bool], str]
