@@ -285,11 +285,10 @@ def flow_texture(image: np.ndarray, side: int) -> np.ndarray:
     small = cv2.GaussianBlur(cv2.resize(image, (max(w // step, 1), max(h // step, 1)),
                                         interpolation=cv2.INTER_AREA).astype(np.float32),
                              (0, 0), 1.0)
-    # Sobel's 3x3 derivative is eight times the gradient.
-    gx, gy = (cv2.Sobel(small, cv2.CV_32F, dx, dy) / 8.0 for dx, dy in ((1, 0), (0, 1)))
-    xx, yy, xy = (cv2.boxFilter(a, -1, (5, 5)) for a in (gx * gx, gy * gy, gx * gy))
-    smaller = 0.5 * (xx + yy) - np.sqrt((0.5 * (xx - yy)) ** 2 + xy ** 2)
-    return cv2.resize((smaller >= FLOW_TEXTURE ** 2).astype(np.uint8), (w, h),
+    # OpenCV scales the 3x3 Sobel by 1 / (4 * 5) and sums the 5x5 window: its eigenvalue is
+    # (8 / 20)^2 * 25 = 4 times that of the gradient averaged over the window.
+    smaller = cv2.cornerMinEigenVal(small, 5, 3)
+    return cv2.resize((smaller >= 4.0 * FLOW_TEXTURE ** 2).astype(np.uint8), (w, h),
                       interpolation=cv2.INTER_NEAREST).astype(bool)
 
 
