@@ -757,6 +757,7 @@ def _filter_matches(
         # Counted apart from the final "spread": the verdict's inlier share counts that one
         # as passed (core.quality), and these pairs never reached the checks.
         matches.rejected["thinned"] = n - len(keep)
+    matches.counts["checked"] = len(matches.reference)
     matches = _verify(matches, images, options.seed)
     needed = MIN_PAIRS[options.epipolar_model] if options.epipolar_filter else MIN_MESH_PAIRS
     if len(matches.reference) < needed:
@@ -877,7 +878,7 @@ def _automatic(
                 and not isinstance(tracked, NotEnoughPointsError)
                 and result[0] is not tracked[0]
             ):
-                for k in ("detected", "tracked", "consistent", "unique", "epipolar"):
+                for k in ("detected", "tracked", "consistent", "checked", "unique", "epipolar"):
                     result[0].counts[f"lk_{k}"] = tracked[0].counts.get(k, 0)
             elif not isinstance(result, NotEnoughPointsError) and isinstance(
                 tracked, NotEnoughPointsError
