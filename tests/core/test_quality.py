@@ -1,5 +1,6 @@
 """The verdict on a registration (core.quality)."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -7,6 +8,7 @@ from pwlreg.core.errors import UnreliableResultError
 from pwlreg.core.pipeline import register
 from pwlreg.core.quality import (
     EXTRAPOLATED_OFF,
+    MOVING_COVERED,
     RESIDUAL_DOUBTFUL,
     RESIDUAL_FLOW_SIDE,
     flow_texture,
@@ -141,6 +143,32 @@ def test_pairs_thinned_before_the_checks_do_not_count_as_failed():
     truth = np.column_stack([w - 1 - ref[:, 0], h - 1 - ref[:, 1]])
     assert np.abs(r.moving_vertices - truth).max() < 0.5
     assert r.quality.verdict == "good"
+
+
+def test_a_close_up_of_part_of_the_reference_is_not_doubted_for_its_small_share():
+    # The moving image shows the reference's central quarter at twice the scale: only about a
+    # fifth of the reference frame can be measured, and nearly all of the moving image is.
+    reference = texture((480, 640), 4, sigma=1.5)
+    zoom = np.array([[2.0, 0.0, -320.0], [0.0, 2.0, -240.0], [0.0, 0.0, 1.0]])
+    moving = cv2.warpPerspective(reference, zoom, (640, 480), flags=cv2.INTER_CUBIC)
+    r = register(reference, moving)
+    f = r.quality.figures
+    assert f["measured_coverage"] < 0.3
+    assert f["measured_moving_coverage"] > MOVING_COVERED
+    ref = r.reference_vertices[~r.extrapolated]
+    truth = ref * 2.0 - [320.0, 240.0]
+    assert np.abs(r.moving_vertices[~r.extrapolated] - truth).max() < 0.5
+    assert r.quality.verdict == "good"
+
+
+def test_points_in_one_corner_of_both_images_are_doubtful():
+    reference, moving, ref, mov = _book_case(n=300)
+    corner = (ref[:, 0] < 70) & (ref[:, 1] < 70)
+    r = register(reference, moving, (ref[corner], mov[corner]), {"epipolar_filter": False})
+    f = r.quality.figures
+    assert f["measured_moving_coverage"] < 0.3
+    assert r.quality.verdict != "good"
+    assert any("of the moving image" in reason for reason in r.quality.reasons)
 
 
 def _left_page_carried_on() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
