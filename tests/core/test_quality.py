@@ -161,6 +161,18 @@ def test_a_close_up_of_part_of_the_reference_is_not_doubted_for_its_small_share(
     assert r.quality.verdict == "good"
 
 
+def test_a_small_crop_of_the_reference_is_not_unreliable():
+    # 120x90 pixels out of 640x480: 1 % of the reference frame can be measured.
+    reference = texture((480, 640), 7, sigma=1.5)
+    moving = reference[200:290, 300:420].copy()
+    r = register(reference, moving)
+    ref = r.reference_vertices[~r.extrapolated]
+    miss = np.hypot(*(r.moving_vertices[~r.extrapolated] - (ref - [300.0, 200.0])).T)
+    assert np.median(miss) < 0.1 and miss.max() < 1.0
+    assert r.quality.figures["measured_coverage"] < 0.05
+    assert r.quality.verdict == "doubtful"
+
+
 def test_points_in_one_corner_of_both_images_are_doubtful():
     reference, moving, ref, mov = _book_case(n=300)
     corner = (ref[:, 0] < 70) & (ref[:, 1] < 70)
