@@ -119,8 +119,10 @@ MOVES: dict[str, Move] = {
         "insertion",
         "a reference corner where the residual optical flow of the registered image is "
         "consistent forward and backward and unique; corrections above 1.5 px also raised the "
-        "mutual information of the triangle they split",
+        "mutual information of the triangle they split; in the second round, on the mesh the "
+        "epipolar move has corrected",
         _flow,
+        rounds=(1,),
     ),
     "epipolar": Move(
         "insertion",
@@ -137,12 +139,12 @@ MOVES: dict[str, Move] = {
         f"a reference point {STEP_OFFSET:g} px of the level beside a jump of the residual "
         "optical flow (a depth step inside a triangle), matched along its epipolar line as the "
         f"epipolar move's corners are, by a patch centred {STEP_WINDOW:g} px farther from the "
-        "jump (on the point's side of the step), in the first round (it reads the flow the "
-        "flow move measured); it has a budget of its own, half the matched pairs, since a "
+        "jump (on the point's side of the step), in the second round (it reads the flow the "
+        "flow move measures); it has a budget of its own, half the matched pairs, since a "
         "step needs vertices on both sides however dense the mesh is elsewhere",
         _along_lines(step_points),
         own_budget=0.5,
-        rounds=(0,),
+        rounds=(1,),
     ),
     "swap": Move(
         "swap",
