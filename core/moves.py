@@ -48,6 +48,8 @@ class Search:
         Pairs the sources before it found in this round (reference, moving).
     epsilon, epsilon_pixels : float
         The swaps' gain threshold (:func:`core.optimize.gain_thresholds`).
+    round : int
+        The insertion round (0 the first).
     """
 
     images: ScoringImages
@@ -57,6 +59,7 @@ class Search:
     added: tuple[np.ndarray, np.ndarray]
     epsilon: float
     epsilon_pixels: float
+    round: int = 0
 
 
 Finder = Callable[[Guide, Search], "Insertion | None"]
@@ -90,7 +93,10 @@ class Move:
     rounds: tuple[int, ...] | None = None
 
 
-def _flow(mesh: Guide, search: Search) -> Insertion:
+def _flow(mesh: Guide, search: Search) -> Insertion | None:
+    if search.round == 0 and search.epipolar is not None:
+        # The epipolar search corrects the first mesh; the flow reads the corrected one.
+        return None
     return guided_pairs(mesh, search.images, measured=search.measured, budget=search.budget,
                         epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels)
 
@@ -120,9 +126,8 @@ MOVES: dict[str, Move] = {
         "a reference corner where the residual optical flow of the registered image is "
         "consistent forward and backward and unique; corrections above 1.5 px also raised the "
         "mutual information of the triangle they split; in the second round, on the mesh the "
-        "epipolar move has corrected",
+        "epipolar move has corrected (in every round without an epipolar geometry)",
         _flow,
-        rounds=(1,),
     ),
     "epipolar": Move(
         "insertion",

@@ -287,7 +287,6 @@ def register(
             for name, move in insertions():
                 if (move.rounds is not None and round_ not in move.rounds) or name in searched:
                     continue
-                searched.add(name)
                 if move.own_budget is None:
                     budget = insertion_budget(matched) - matched - sum(
                         n for k, n in by_source.items() if MOVES[k].own_budget is None)
@@ -296,9 +295,10 @@ def register(
                 found = move.find(current, Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
-                    epsilon_pixels=opts.epsilon_pixels))
+                    epsilon_pixels=opts.epsilon_pixels, round=round_))
                 if found is None:
                     continue
+                searched.add(name)
                 by_source[name] += len(found.reference)
                 _add_counts(insertion, name, found.counts)
                 new_ref = np.concatenate([new_ref, found.reference])

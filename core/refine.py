@@ -666,6 +666,11 @@ def epipolar_pairs(
     # Where the mesh maps the patches' centres (the search's segment) and the sites (the size
     # of the correction), in one pass.
     predicted, at_sites = np.split(_predicted(mesh, np.concatenate([points, sites])), 2)
+    # A point the mesh maps out of the moving image is most likely out of its view: searched
+    # for, it finds a lookalike inside (a close-up's border matched 60 px off along its line).
+    mh, mw = mov_l.shape
+    out_of_view = ~((predicted >= 0) & (predicted <= [mw - 1, mh - 1])).all(axis=1)
+    predicted[out_of_view] = np.nan  # not searched
     line = _lines(F, points)
     foot = _foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.

@@ -207,6 +207,38 @@ def test_insertion_lowers_the_error_and_is_recorded() -> None:
     assert mesh_document(refined)["vertex_origins"] == refined.origins
 
 
+def test_the_flow_reads_the_mesh_the_epipolar_search_corrected(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # With an epipolar geometry the first round searches along the lines only and the flow
+    # reads the mesh it corrected, once; without one the flow reads every round's mesh.
+    import pwlreg.core.moves as moves
+    import pwlreg.core.pipeline as pipeline
+
+    meshes: list[int] = []  # vertices of each mesh the insertion looked at
+    read: list[int] = []  # of those the flow read
+
+    def seen_guide(grey, reference, *args, **kwargs):  # noqa: ANN001, ANN202 - spies
+        meshes.append(len(reference))
+        return guide(grey, reference, *args, **kwargs)
+
+    def seen_flow(mesh, *args, **kwargs):  # noqa: ANN001, ANN202
+        read.append(len(mesh.reference_vertices))
+        return guided_pairs(mesh, *args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "guide", seen_guide)
+    monkeypatch.setattr(moves, "guided_pairs", seen_flow)
+    ref_img, mov_img = open_book((320, 240), 160.0, seed=1)
+    with_model = register(ref_img, mov_img)
+    assert with_model.points.epipolar is not None
+    assert len(meshes) == 2 and meshes[1] > meshes[0] and read == meshes[1:]
+    assert with_model.insertion["flow inserted"] > 0
+    meshes.clear()
+    read.clear()
+    without = register(ref_img, mov_img, options={"epipolar_filter": False})
+    assert without.points.epipolar is None and read == meshes and len(read) == 2
+
+
 def test_spaced_is_the_greedy_choice_in_order() -> None:
     rng = np.random.default_rng(5)
     points = rng.uniform(0, 200, (3000, 2))
