@@ -59,7 +59,7 @@ class Search:
     added: tuple[np.ndarray, np.ndarray]
     epsilon: float
     epsilon_pixels: float
-    round: int = 0
+    round: int
 
 
 Finder = Callable[[Guide, Search], "Insertion | None"]

@@ -37,7 +37,7 @@ Progress = Callable[[str, float], None]
 #: Passes of vertex insertion (:data:`core.moves.MOVES`): the epipolar search corrects the
 #: first mesh where it is far off, and the second pass reads the residual flow of that better
 #: mesh (where it can follow it) and searches again. The flow once, in the second pass, instead
-#: of in both: on Middlebury (``extent=frame``) 0.510 / 0.357 / 0.996 / 1.293 px against 0.524
+#: of in both: on Middlebury (``extent=frame``) 0.510 / 0.357 / 0.991 / 1.293 px against 0.524
 #: / 0.378 / 1.011 / 1.332, on the synthetic suite's automatic path 39.3 % below Delaunay on
 #: average against 38.9 (median 46.1 % both), and one DIS pair less (``python -m
 #: bench.beyond --frame`` / ``--automatic``).
