@@ -363,10 +363,13 @@ def _raises_mi(
     for corner in range(3):
         split_ref[:, corner, corner] = points
         split_mov[:, corner, corner] = moving
-    whole, _ = triangle_statistics(images, ref_tri, mov_tri)
+    # Several points often split one large triangle: its histogram once.
+    _, first, each = np.unique(owner_index, return_index=True, return_inverse=True)
+    whole, _ = triangle_statistics(images, ref_tri[first], mov_tri[first])
     parts, _ = triangle_statistics(images, split_ref.reshape(-1, 3, 2),
                                    split_mov.reshape(-1, 3, 2))
     parts = parts.reshape(k, 3, -1).sum(axis=1)
+    whole = whole[each.ravel()]
     before = mutual_information(whole, images.bins)[1]
     after = mutual_information(parts, images.bins)[1]
     pixels = whole.sum(axis=1).astype(np.float64)
