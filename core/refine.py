@@ -11,8 +11,9 @@ conjugate pairs; those whose correction is large must also raise the mutual info
 triangle they split (an occlusion fools the flow, not the joint histogram).
 
 Where the mesh is far off (a triangle across a depth step, or a wide baseline that left few
-pairs) the flow fails its forward-backward test; :func:`epipolar_pairs` then searches for the
-remaining corners along their epipolar lines. Where the residual flow jumps, a depth step
+pairs) the flow fails its forward-backward test; :func:`epipolar_pairs` searches for corners
+along their epipolar lines instead, first on the first mesh (the flow then reads the mesh it
+corrected) and again after the flow. Where the residual flow jumps, a depth step
 crosses a triangle whose affine map follows neither surface; :func:`step_points` puts
 candidates on both sides of the jump, searched for along their lines too. The pipeline builds
 the mesh again over the old and the new pairs.
@@ -459,8 +460,8 @@ EPI_MARGIN, EPI_LONGEST = 8, 192
 EPI_REACH = 96
 
 #: Candidates searched per pair the budget allows (a search costs; about one in four to ten
-#: passes the checks). Four left the synthetic suite and Middlebury's frame as they are with
-#: three, and searched a third more candidates on a real facade (2530 against 1900).
+#: passes the checks). Three leave the synthetic suite and Middlebury's frame as four did
+#: (``python -m bench.beyond``) and search a quarter fewer candidates on a real facade.
 EPI_SEARCHED = 3
 
 #: Nearest vertices whose displacements, applied at a point, span its search segment.
