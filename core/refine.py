@@ -68,8 +68,9 @@ class Insertion:
         The new pairs (pixels).
     counts : dict of str to int
         ``candidates`` (corners away from the vertices, inside the mesh), ``consistent``
-        (forward-backward), ``unique`` (correlation check), ``inserted``; ``rejected by mi``
-        the large corrections the mutual information did not confirm.
+        (forward-backward), ``checked`` (of those, the largest corrections the budget reached),
+        ``unique`` (correlation check), ``inserted``; ``rejected by mi`` the large corrections
+        the mutual information did not confirm.
     """
 
     reference: np.ndarray
@@ -260,7 +261,8 @@ def guided_pairs(
     -------
     Insertion
     """
-    counts = {"candidates": 0, "consistent": 0, "unique": 0, "rejected by mi": 0, "inserted": 0}
+    counts = {"candidates": 0, "consistent": 0, "checked": 0, "unique": 0, "rejected by mi": 0,
+              "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
@@ -291,22 +293,40 @@ def guided_pairs(
     if not len(points):
         return empty
 
-    # The registered image is the moving one seen through the mesh: the correlation check
-    # compares patches with almost no distortion there.
-    target = points + residual
-    check = uniqueness(ref_l, registered, points, target, None)
-    points, target, residual = points[check.ok], target[check.ok], residual[check.ok]
-    counts["unique"] = len(points)
-    if not len(points):
+    # The largest corrections are kept first, and each check judges a point alone: checked in
+    # that order only as far as the budget reaches, the pairs are those of checking them all
+    # (after an epipolar round the flow's budget is often a few dozen of hundreds).
+    order = np.argsort(-np.hypot(*residual.T), kind="stable")
+    points, residual = points[order], residual[order]
+    counts["unique"] = 0
+    found: list[Insertion] = []
+    start = 0
+    while start < len(points) and budget > 0:
+        part = slice(start, start + 2 * budget)
+        start = part.stop
+        # The registered image is the moving one seen through the mesh: the correlation check
+        # compares patches with almost no distortion there.
+        target = points[part] + residual[part]
+        check = uniqueness(ref_l, registered, points[part], target, None)
+        counts["unique"] += int(check.ok.sum())
+        if not check.ok.any():
+            continue
+        target = target[check.ok]
+        moving = np.column_stack([_sample(map_x, target), _sample(map_y, target)])
+        mapped = moving[:, 0] >= 0  # the corrected point still falls inside the mesh
+        size = np.hypot(*residual[part][check.ok].T) / scale  # pixels of the reference
+        found.append(_chosen(images, ref_v, mov_v, tris, _from_level(points[part][check.ok], scale),
+                             _from_level(moving, scale), size, mapped, {}, budget=budget,
+                             epsilon=epsilon, epsilon_pixels=epsilon_pixels))
+        budget -= len(found[-1].reference)
+    counts["checked"] = min(start, len(points))
+    if not found:
         return empty
-    moving = np.column_stack([_sample(map_x, target), _sample(map_y, target)])
-    mapped = moving[:, 0] >= 0  # the corrected point still falls inside the mesh
-    reference = _from_level(points, scale)
-    moving = _from_level(moving, scale)
-    size = np.hypot(*residual.T) / scale  # pixels of the reference
-
-    return _chosen(images, ref_v, mov_v, tris, reference, moving, size, mapped, counts,
-                   budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
+    for one in found:
+        counts["rejected by mi"] += one.counts.get("rejected by mi", 0)
+        counts["inserted"] += one.counts["inserted"]
+    return Insertion(np.concatenate([f.reference for f in found]),
+                     np.concatenate([f.moving for f in found]), counts)
 
 
 def _chosen(

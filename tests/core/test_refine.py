@@ -83,6 +83,29 @@ def test_guided_pairs_lie_on_the_true_map(zoom: int, scale: int) -> None:
     assert old_miss.max() > 2.0 and miss.mean() < old_miss.mean() / 3
 
 
+def test_a_small_budget_checks_fewer_candidates_for_the_same_pairs() -> None:
+    # The flow's candidates are checked largest correction first, only as far as the budget
+    # reaches: the pairs are the budget's largest of those that checking them all gives.
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    ref, mov = _far_points()
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    current = guide(levels(ref_img, mov_img), mesh.reference, mesh.moving, mesh.triangles)
+    images = prepare_images(ref_img, mov_img, 16)
+
+    def found(budget: int) -> Insertion:
+        return guided_pairs(current, images, measured=len(ref), budget=budget, epsilon=0.01,
+                            epsilon_pixels=250.0)
+
+    every = found(10_000)
+    assert every.counts["checked"] == every.counts["consistent"] > 20
+    for budget in (3, 8):
+        few = found(budget)
+        assert few.counts["checked"] < every.counts["checked"]
+        assert few.counts["inserted"] == budget
+        np.testing.assert_array_equal(few.reference, every.reference[:budget])
+        np.testing.assert_array_equal(few.moving, every.moving[:budget])
+
+
 #: The open book's epipolar geometry: every displacement is parallel to (-1, 1), so
 #: ``x' + y' - x - y = 0`` (an affine fundamental matrix, ``x_mov^T F x_ref = 0``).
 BOOK_MODEL = EpipolarModel(
