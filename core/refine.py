@@ -306,16 +306,16 @@ def guided_pairs(
         start = part.stop
         # The registered image is the moving one seen through the mesh: the correlation check
         # compares patches with almost no distortion there.
-        target = points[part] + residual[part]
-        check = uniqueness(ref_l, registered, points[part], target, None)
+        check = uniqueness(ref_l, registered, points[part], points[part] + residual[part], None)
         counts["unique"] += int(check.ok.sum())
         if not check.ok.any():
             continue
-        target = target[check.ok]
+        kept, shift = points[part][check.ok], residual[part][check.ok]
+        target = kept + shift
         moving = np.column_stack([_sample(map_x, target), _sample(map_y, target)])
         mapped = moving[:, 0] >= 0  # the corrected point still falls inside the mesh
-        size = np.hypot(*residual[part][check.ok].T) / scale  # pixels of the reference
-        found.append(_chosen(images, ref_v, mov_v, tris, _from_level(points[part][check.ok], scale),
+        size = np.hypot(*shift.T) / scale  # pixels of the reference
+        found.append(_chosen(images, ref_v, mov_v, tris, _from_level(kept, scale),
                              _from_level(moving, scale), size, mapped, {}, budget=budget,
                              epsilon=epsilon, epsilon_pixels=epsilon_pixels))
         budget -= len(found[-1].reference)
