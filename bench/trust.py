@@ -164,9 +164,13 @@ def run_case(case: Case) -> dict:
     truth = _truth_at(scene, ref_pts)
     err = np.linalg.norm(mov_pts - truth, axis=1)
     row["inserted"] = int(r.inserted.sum())
-    row["inserted_wrong"] = int(np.count_nonzero(
-        np.where(np.isfinite(err), err, np.inf)[len(r.points.reference):] > WRONG_PX))
     err = np.where(np.isfinite(err), err, np.inf)
+    row["inserted_wrong"] = int(np.count_nonzero(err[len(r.points.reference):] > WRONG_PX))
+    sources = np.array(["matched"] * len(r.points.reference)
+                       + [o for o, i in zip(r.origins, r.inserted, strict=True) if i])
+    row["wrong_by_source"] = {str(k): [int(np.count_nonzero(err[sources == k] > WRONG_PX)),
+                                       int(np.count_nonzero(sources == k))]
+                              for k in dict.fromkeys(sources)}
     row["wrong_share"] = float(np.mean(err > WRONG_PX)) if len(err) else 1.0
     row["wrong"] = int(np.count_nonzero(err > WRONG_PX))
     row["point_error_median"] = float(np.median(err)) if len(err) else float("nan")
@@ -309,6 +313,15 @@ def summarize(rows: list[dict]) -> dict:
             "epe_max": float(np.max(epe)) if epe else float("nan"),
         }
     unrelated = [r for r in rows if r["group"] == "unrelated"]
+    by_source: dict[str, list[int]] = {}
+    for r in scored:
+        for k, (w, n) in r.get("wrong_by_source", {}).items():
+            by_source.setdefault(k, [0, 0])
+            by_source[k][0] += w
+            by_source[k][1] += n
+    by_verdict = {v: [sum(r["wrong"] for r in scored if r["verdict"] == v),
+                      sum(r["points"] + r.get("inserted", 0) for r in scored
+                          if r["verdict"] == v)] for v in VERDICTS}
     return {
         "cases": len(rows),
         "kept_pairs": kept,
@@ -316,6 +329,8 @@ def summarize(rows: list[dict]) -> dict:
         "wrong_share": wrong / kept if kept else float("nan"),
         "inserted_pairs": sum(r.get("inserted", 0) for r in scored),
         "inserted_wrong": sum(r.get("inserted_wrong", 0) for r in scored),
+        "wrong_by_source": by_source,
+        "wrong_by_verdict": {v: wn for v, wn in by_verdict.items() if wn[1]},
         "mostly_wrong_called_good": sum(
             r["verdict"] == "good" and r.get("wrong_share", 0) > 0.5 for r in scored),
         "unrelated_not_unreliable": sum(r["verdict"] not in ("unreliable", "refused")
@@ -335,6 +350,11 @@ def write_report(rows: list[dict], summary: dict, mb: list[dict], hard: list[dic
         f"registered cases with truth: {s['kept_pairs']}, of which {s['wrong_pairs']} more "
         f"than {WRONG_PX:.0f} px from the "
         f"truth (**{100 * s['wrong_share']:.2f} %**).",
+        "* Wrong / kept pairs by what found them: " + ", ".join(
+            f"{k} {w} / {n} ({100 * w / n:.2f} %)" for k, (w, n) in s["wrong_by_source"].items()
+            if n) + "; by the verdict of their result: " + ", ".join(
+            f"`{v}` {w} / {n} ({100 * w / n:.2f} %)" for v, (w, n) in
+            s["wrong_by_verdict"].items()) + ".",
         f"* Cases whose kept pairs are mostly wrong and called `good`: "
         f"**{s['mostly_wrong_called_good']}**.",
         f"* Unrelated pairs not `unreliable` or refused: **{s['unrelated_not_unreliable']}**.",

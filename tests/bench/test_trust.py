@@ -26,20 +26,26 @@ def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_
         assert not np.isfinite(_truth_at(s, far[None, ::-1].astype(float))).any()
 
 
-def test_summary_counts_wrong_pairs_and_mostly_wrong_good_cases():
+def test_summary_counts_wrong_pairs_by_source_and_verdict_and_mostly_wrong_good_cases():
     rows = [
         {"name": "a", "group": "polyhedral", "status": "successful", "verdict": "good",
-         "points": 100, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0},
-        {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "good",
-         "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0},
+         "points": 90, "inserted": 10, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0,
+         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}},
+        {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "doubtful",
+         "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0,
+         "wrong_by_source": {"matched": [8, 10]}},
         {"name": "c", "group": "unrelated", "status": "successful", "verdict": "doubtful",
          "points": 5, "wrong_share": 1.0, "epe_mean": float("nan")},
     ]
     s = summarize(rows)
     assert s["wrong_pairs"] == 9 and s["kept_pairs"] == 110
-    assert s["mostly_wrong_called_good"] == 1
+    assert s["mostly_wrong_called_good"] == 0
     assert s["unrelated_not_unreliable"] == 1
-    assert s["verdicts"]["good"]["cases"] == 2
+    assert s["verdicts"]["good"]["cases"] == 1
+    assert s["wrong_by_source"] == {"matched": [8, 100], "step": [1, 10]}
+    assert s["wrong_by_verdict"] == {"good": [1, 100], "doubtful": [8, 10]}
+    rows[1]["verdict"] = "good"
+    assert summarize(rows)["mostly_wrong_called_good"] == 1
 
 
 def test_other_seeds_replace_the_scene_seeds_and_keep_the_families():
