@@ -207,7 +207,11 @@ def choose_by_agreement(
     chosen = n + np.flatnonzero(spread > 1.0)
     # Every (triangle, border vertex) incidence, in any order: the histograms are summed in
     # integers, exactly.
-    t_idx, s_idx = np.nonzero((tris[:, :, None] == chosen[None, None, :]).any(axis=1))
+    slot = np.full(n + m, -1)
+    slot[chosen] = np.arange(len(chosen))
+    hit = slot[tris]
+    t_idx, corner = np.nonzero(hit >= 0)
+    s_idx = hit[t_idx, corner]
     if not len(t_idx):
         return candidates[0]
     corners = tris[t_idx]
