@@ -82,21 +82,19 @@ class Move:
         For insertions: None to draw on the budget the sources share
         (:func:`core.pipeline.insertion_budget`), or a budget of its own over all rounds, as a
         share of the matched pairs.
-    rounds : tuple of int or None
-        For insertions: the rounds it runs in (0 the first; None: every round).
+    runs : callable or None
+        For insertions: ``runs(search)``, whether it searches in this round on this pair
+        (:attr:`Search.round`, :attr:`Search.epipolar`); None: every round.
     """
 
     kind: str
     reason: str
     find: Finder | None = None
     own_budget: float | None = None
-    rounds: tuple[int, ...] | None = None
+    runs: Callable[[Search], bool] | None = None
 
 
-def _flow(mesh: Guide, search: Search) -> Insertion | None:
-    if search.round == 0 and search.epipolar is not None:
-        # The epipolar search corrects the first mesh; the flow reads the corrected one.
-        return None
+def _flow(mesh: Guide, search: Search) -> Insertion:
     return guided_pairs(mesh, search.images, measured=search.measured, budget=search.budget,
                         epsilon=search.epsilon, epsilon_pixels=search.epsilon_pixels)
 
@@ -128,6 +126,8 @@ MOVES: dict[str, Move] = {
         "mutual information of the triangle they split; in the second round, on the mesh the "
         "epipolar move has corrected (in every round without an epipolar geometry)",
         _flow,
+        # The epipolar search corrects the first mesh; the flow reads the corrected one.
+        runs=lambda search: search.round > 0 or search.epipolar is None,
     ),
     "epipolar": Move(
         "insertion",
@@ -149,7 +149,7 @@ MOVES: dict[str, Move] = {
         "step needs vertices on both sides however dense the mesh is elsewhere",
         _along_lines(step_points),
         own_budget=0.5,
-        rounds=(1,),
+        runs=lambda search: search.round == 1,
     ),
     "swap": Move(
         "swap",

@@ -285,17 +285,20 @@ def register(
                                 extrapolated=tri_report.extrapolated)
             new_ref, new_mov = np.zeros((0, 2)), np.zeros((0, 2))
             for name, move in insertions():
-                if (move.rounds is not None and round_ not in move.rounds) or name in searched:
+                if name in searched:
                     continue
                 if move.own_budget is None:
                     budget = insertion_budget(matched) - matched - sum(
                         n for k, n in by_source.items() if MOVES[k].own_budget is None)
                 else:
                     budget = int(move.own_budget * matched) - by_source[name]
-                found = move.find(current, Search(
+                search = Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
-                    epsilon_pixels=opts.epsilon_pixels, round=round_))
+                    epsilon_pixels=opts.epsilon_pixels, round=round_)
+                if move.runs is not None and not move.runs(search):
+                    continue
+                found = move.find(current, search)
                 if found is None:
                     continue
                 searched.add(name)

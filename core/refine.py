@@ -298,7 +298,6 @@ def guided_pairs(
     # (after an epipolar round the flow's budget is often a few dozen of hundreds).
     order = np.argsort(-np.hypot(*residual.T), kind="stable")
     points, residual = points[order], residual[order]
-    counts["unique"] = 0
     found: list[Insertion] = []
     start = 0
     while start < len(points) and budget > 0:
