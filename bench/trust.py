@@ -38,7 +38,7 @@ from typing import Any
 
 import cv2
 import numpy as np
-from scipy.spatial import Delaunay
+from scipy.spatial import Delaunay, cKDTree
 
 from bench import middlebury, realdata
 from bench.metrics import endpoint_error
@@ -158,10 +158,22 @@ def run_case(case: Case) -> dict:
     if unrelated:
         row.update(wrong_share=1.0, epe_mean=float("nan"))
         return row
-    # Matched pairs and the pairs the guided insertion added: every measured vertex counts.
+    # Matched pairs and the pairs the guided insertion added: every measured vertex counts, at
+    # its position in the result (the `correct` move may have moved a matched one).
+    _, at = cKDTree(r.reference_vertices).query(r.points.reference)
+    same = np.hypot(*(r.reference_vertices[at] - r.points.reference).T) < 0.01
+    matched = np.where(same[:, None], r.moving_vertices[at], r.points.moving)
     ref_pts = np.concatenate([r.points.reference, r.reference_vertices[r.inserted]])
-    mov_pts = np.concatenate([r.points.moving, r.moving_vertices[r.inserted]])
+    mov_pts = np.concatenate([matched, r.moving_vertices[r.inserted]])
     truth = _truth_at(scene, ref_pts)
+    if r.corrections is not None and len(r.corrections.vertices):
+        c = r.corrections
+        t = _truth_at(scene, r.reference_vertices[c.vertices])
+        row["corrected"] = [len(c.vertices),
+                            int(np.count_nonzero(~(np.linalg.norm(c.before - t, axis=1)
+                                                   <= WRONG_PX))),
+                            int(np.count_nonzero(~(np.linalg.norm(c.moving - t, axis=1)
+                                                   <= WRONG_PX)))]
     err = np.linalg.norm(mov_pts - truth, axis=1)
     row["inserted"] = int(r.inserted.sum())
     err = np.where(np.isfinite(err), err, np.inf)
@@ -331,6 +343,8 @@ def summarize(rows: list[dict]) -> dict:
         "inserted_wrong": sum(r.get("inserted_wrong", 0) for r in scored),
         "wrong_by_source": by_source,
         "wrong_by_verdict": {v: wn for v, wn in by_verdict.items() if wn[1]},
+        # Vertices the `correct` move moved: how many, wrong before, wrong after.
+        "corrected": [sum(r.get("corrected", [0, 0, 0])[k] for r in scored) for k in range(3)],
         "mostly_wrong_called_good": sum(
             r["verdict"] == "good" and r.get("wrong_share", 0) > 0.5 for r in scored),
         "unrelated_not_unreliable": sum(r["verdict"] not in ("unreliable", "refused")
@@ -355,6 +369,8 @@ def write_report(rows: list[dict], summary: dict, mb: list[dict], hard: list[dic
             if n) + "; by the verdict of their result: " + ", ".join(
             f"`{v}` {w} / {n} ({100 * w / n:.2f} %)" for v, (w, n) in
             s["wrong_by_verdict"].items()) + ".",
+        f"* Vertices moved by the `correct` move: {s['corrected'][0]}, of which wrong before "
+        f"{s['corrected'][1]}, after {s['corrected'][2]}.",
         f"* Cases whose kept pairs are mostly wrong and called `good`: "
         f"**{s['mostly_wrong_called_good']}**.",
         f"* Unrelated pairs not `unreliable` or refused: **{s['unrelated_not_unreliable']}**.",

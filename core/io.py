@@ -255,6 +255,10 @@ def _as_points(value: object, field: str) -> np.ndarray:
         raise InputError(f"{field} must be a list of [x, y] numbers", field) from exc
 
 
+def _corrections(result: RegistrationResult) -> list[dict] | None:
+    return None if result.corrections is None else result.corrections.to_list()
+
+
 def mesh_document(result: RegistrationResult) -> dict:
     """The ``mesh.json`` document (file contract) of a result."""
     return {
@@ -271,7 +275,8 @@ def mesh_document(result: RegistrationResult) -> dict:
         "inserted": result.inserted.tolist(),
         "vertex_origins": result.origins,
         "insertion": result.insertion,
-        "moves": move_counts(result.origins, result.search.steps),
+        "corrections": _corrections(result),
+        "moves": move_counts(result.origins, result.search.steps, _corrections(result)),
         "quality": result.quality.to_dict(),
         "triangle_scores": [
             None if not np.isfinite(v) else round(float(v), 4)
@@ -313,8 +318,9 @@ def convergence_document(result: RegistrationResult) -> dict:
             }
             for st in s.steps
         ],
+        "corrections": _corrections(result),
         "final": {"mi": s.final_mi, "nmi": s.final_nmi},
-        "moves": move_counts(result.origins, s.steps),
+        "moves": move_counts(result.origins, s.steps, _corrections(result)),
         "stopped_because": s.stopped_because,
         "evaluations": s.evaluations,
     }

@@ -1,10 +1,12 @@
 """The moves a registration makes on its mesh, one table: :data:`MOVES`.
 
-Two kinds. *Insertions* run while the mesh is built, on the automatic path (or with
+Three kinds. *Insertions* run while the mesh is built, on the automatic path (or with
 ``insert_vertices="always"``): each finds new conjugate pairs from the images guided by the
 current mesh (:class:`core.refine.Guide`), and the mesh is built again over the old and the new
 pairs. *Swaps* are the optimizer's changes of the triangulation (:mod:`core.optimize`), recorded
-step by step with their gain. Every move's name and reason go into ``mesh.json`` and
+step by step with their gain. *Vertex* moves change a measured vertex's moving position after
+the swaps, on the same path as the insertions (:mod:`core.correct`), each recorded with its
+gain. Every move's name and reason go into ``mesh.json`` and
 ``convergence.json``, and every mesh vertex says which move (or the matcher) put it there.
 Adding an insertion source is one entry here.
 """
@@ -16,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pwlreg.core.correct import MOVE as CORRECT
+from pwlreg.core.correct import REACH, SUPPORT, SUPPORT_PX, SUSPECT_PX
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.refine import (
     EPI_REACH,
@@ -71,8 +75,8 @@ class Move:
 
     Attributes
     ----------
-    kind : {"insertion", "swap"}
-        When it runs: while the mesh is built, or in the optimizer's search.
+    kind : {"insertion", "swap", "vertex"}
+        When it runs: while the mesh is built, in the optimizer's search, or after it.
     reason : str
         Why such a move is made, as ``mesh.json`` and ``convergence.json`` give it.
     find : callable or None
@@ -151,6 +155,15 @@ MOVES: dict[str, Move] = {
         own_budget=0.5,
         runs=lambda search: search.round == 1,
     ),
+    CORRECT: Move(
+        "vertex",
+        f"a measured vertex (not the client's) whose displacement differs from a neighbour's "
+        f"by more than {SUSPECT_PX:g} px moved as at least {SUPPORT} of its neighbours do "
+        f"(within {SUPPORT_PX:g} px), by at most {REACH:g} of its mean edge, when that raised "
+        "the normalized mutual information of its triangles by more than the swaps' threshold "
+        "and folded none of them; no two neighbours move in one pass (a corner where a "
+        "foreground edge crosses the background is matched with the foreground's motion)",
+    ),
     "swap": Move(
         "swap",
         "the consistency (cost) of the quad rose by more than its threshold",
@@ -175,14 +188,14 @@ def insertions() -> list[tuple[str, Move]]:
     return [(name, m) for name, m in MOVES.items() if m.kind == "insertion"]
 
 
-def move_counts(origins: list[str], steps: list) -> list[dict]:
+def move_counts(origins: list[str], steps: list, moved: list[dict] | None = None) -> list[dict]:
     """Per move of :data:`MOVES` that was made: its name, kind, count and reason.
 
     ``origins`` are the mesh vertices' origins (a move's name, or ``client``, ``matched``,
-    ``frame``),
-    ``steps`` the optimizer's accepted steps (each with a ``move`` name).
+    ``frame``), ``steps`` the optimizer's accepted steps and ``moved`` the vertex moves'
+    records (each with a ``move`` name).
     """
-    made = [*origins, *(s.move for s in steps)]
+    made = [*origins, *(s.move for s in steps), *(m["move"] for m in moved or [])]
     return [
         {"move": name, "kind": m.kind, "count": made.count(name), "reason": m.reason}
         for name, m in MOVES.items() if name in made

@@ -167,6 +167,9 @@ def register(
         **{**vars(result),
            "reference_vertices": quantize(ref_v), "moving_vertices": quantize(mov_v),
            "options": opts, "points": _scaled_points(result.points, scale),
+           "corrections": None if result.corrections is None else replace(
+               result.corrections, moving=up(result.corrections.moving, scale[1]),
+               before=up(result.corrections.before, scale[1])),
            "timings": timings,
            "reference_size": (shapes[0][1], shapes[0][0]),
            "moving_size": (shapes[1][1], shapes[1][0])},

@@ -26,11 +26,11 @@ def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_
         assert not np.isfinite(_truth_at(s, far[None, ::-1].astype(float))).any()
 
 
-def test_summary_counts_wrong_pairs_by_source_and_verdict_and_mostly_wrong_good_cases():
+def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_good_cases():
     rows = [
         {"name": "a", "group": "polyhedral", "status": "successful", "verdict": "good",
          "points": 90, "inserted": 10, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0,
-         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}},
+         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}, "corrected": [3, 2, 1]},
         {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "doubtful",
          "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0,
          "wrong_by_source": {"matched": [8, 10]}},
@@ -44,6 +44,7 @@ def test_summary_counts_wrong_pairs_by_source_and_verdict_and_mostly_wrong_good_
     assert s["verdicts"]["good"]["cases"] == 1
     assert s["wrong_by_source"] == {"matched": [8, 100], "step": [1, 10]}
     assert s["wrong_by_verdict"] == {"good": [1, 100], "doubtful": [8, 10]}
+    assert s["corrected"] == [3, 2, 1]
     rows[1]["verdict"] = "good"
     assert summarize(rows)["mostly_wrong_called_good"] == 1
 

@@ -1,0 +1,116 @@
+"""The vertex move of core.correct: a contradicted vertex moves with its neighbours, a right
+one stays."""
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from bench import middlebury
+from bench.metrics import endpoint_error
+from pwlreg.core.correct import MOVE, contradicted_vertices
+from pwlreg.core.io import convergence_document, mesh_document
+from pwlreg.core.moves import MOVES
+from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
+from pwlreg.core.similarity import prepare_images
+from tests.core.synthetic import book_map, open_book, texture
+
+CREASE = 100.0
+DEFAULTS = RegistrationOptions()
+
+
+def _book_mesh() -> tuple:
+    """The open book and a right mesh over it: vertices on both planes, their moving
+    positions true (the right plane shears: neighbours there move up to 9 px apart)."""
+    reference, moving = open_book((200, 160), CREASE, seed=5)
+    xs, ys = np.meshgrid([10, 35, 60, 85, 115, 140, 165, 190], [10, 45, 80, 115, 150])
+    ref_v = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    mov_v = np.column_stack(book_map(ref_v[:, 0], ref_v[:, 1], CREASE))
+    tris = Delaunay(ref_v).simplices
+    return prepare_images(reference, moving, DEFAULTS.bins), ref_v, mov_v, tris
+
+
+def _check(images, ref_v, mov_v, tris, movable=None):  # type: ignore[no-untyped-def]
+    movable = np.ones(len(ref_v), bool) if movable is None else movable
+    return contradicted_vertices(images, ref_v, mov_v, tris, movable,
+                                 epsilon=DEFAULTS.epsilon, epsilon_pixels=DEFAULTS.epsilon_pixels)
+
+
+def test_a_right_mesh_keeps_its_vertices_where_neighbours_move_apart() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    found = _check(images, ref_v, mov_v, tris)
+    assert found.tested > 0  # the sheared plane's neighbours differ by more than SUSPECT_PX
+    assert len(found.vertices) == 0
+
+
+def test_a_vertex_off_its_plane_moves_back_with_its_neighbours() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    wrong = int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == 80))[0])
+    off = mov_v.copy()
+    off[wrong] += [5.0, -2.0]
+    found = _check(images, ref_v, off, tris)
+    # Only that vertex: each of its neighbours has one neighbour (it) moving apart, and one
+    # neighbour moves nothing.
+    assert found.vertices.tolist() == [wrong]
+    np.testing.assert_allclose(found.moving[0], mov_v[wrong], atol=1e-9)
+    np.testing.assert_allclose(found.before[0], off[wrong])
+    assert found.gains[0] > 0
+    record = found.to_list()[0]
+    assert record["vertex"] == wrong and record["move"] == MOVE == "correct"
+    # A vertex that may not move (the client's) stays where it is.
+    fixed = np.ones(len(ref_v), bool)
+    fixed[wrong] = False
+    assert len(_check(images, ref_v, off, tris, fixed).vertices) == 0
+
+
+def test_a_move_that_would_fold_a_triangle_is_not_made() -> None:
+    # The moving image is the reference 12 px to the right; a vertex and one neighbour stay
+    # put, its three other neighbours move 12 px right (true).
+    reference = texture((160, 200), seed=7)
+    moving = np.roll(reference, 12, axis=1)
+    images = prepare_images(reference, moving, DEFAULTS.bins)
+
+    def star(near_x: float):  # type: ignore[no-untyped-def]
+        ref_v = np.array([[100, 80], [60, 80], [100, 120], [near_x, 80], [100, 40]], float)
+        mov_v = ref_v + [[0, 0], [12, 0], [12, 0], [0, 0], [12, 0]]
+        tris = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1]])
+        movable = np.array([True, False, False, False, False])
+        return contradicted_vertices(images, ref_v, mov_v, tris, movable,
+                                     epsilon=DEFAULTS.epsilon,
+                                     epsilon_pixels=DEFAULTS.epsilon_pixels)
+
+    # With the still neighbour 40 px away the vertex moves to its true place...
+    far = star(140.0)
+    assert far.vertices.tolist() == [0]
+    np.testing.assert_allclose(far.moving[0], [112, 80])
+    # ... with it 8 px away that place lies beyond it: two triangles would fold.
+    near = star(108.0)
+    assert near.tested == 1 and len(near.vertices) == 0
+
+
+@pytest.mark.skipif("middlebury2003_teddy" not in middlebury.available_middlebury(),
+                    reason=f"Middlebury teddy not found under {middlebury.real_data_root()} "
+                    f"(set ${middlebury.ENV_VAR})")
+def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
+    pair = middlebury.load_middlebury("middlebury2003_teddy")
+    result = register(pair.reference, pair.moving, options={"extent": "frame"})
+    moved = result.corrections
+    assert moved is not None and len(moved.vertices) > 0
+    assert all(result.origins[v] != "client" and not result.extrapolated[v]
+               for v in moved.vertices)
+    np.testing.assert_allclose(result.moving_vertices[moved.vertices], moved.moving, atol=0.01)
+    before = result.moving_vertices.copy()
+    before[moved.vertices] = moved.before
+
+    def epe(mov: np.ndarray) -> float:
+        return endpoint_error(result.reference_vertices, mov, result.final_triangles,
+                              pair.truth_x, pair.truth_y, pair.valid)["mean"]
+
+    assert epe(result.moving_vertices) < epe(before) - 0.01  # measured: 1.293 -> 1.264 px
+    mesh, convergence = mesh_document(result), convergence_document(result)
+    assert mesh["corrections"] == convergence["corrections"] == moved.to_list()
+    counts = {m["move"]: m for m in mesh["moves"]}
+    assert counts["correct"]["count"] == len(moved.vertices)
+    assert counts["correct"]["kind"] == "vertex"
+    assert counts["correct"]["reason"] == MOVES["correct"].reason
+    assert f"{len(moved.vertices)} vertices moved" in result.summary()
