@@ -63,9 +63,12 @@ class RegistrationOptions(BaseModel):
         "split; at most as many new pairs as matched ones (at least 200). Where the residual "
         "flow jumps (a depth step inside a triangle), points on both sides of the jump are "
         "searched for along their epipolar lines too, up to half the matched pairs more. The "
-        "mesh is built again over all of them. "
+        "mesh is built again over all of them. After the swaps, a measured vertex that the "
+        "images contradict (its triangles gain more than the swaps' threshold when it moves "
+        "as at least two of its neighbours do) is moved so (the 'correct' move). "
         "'automatic': only when the service found the points; 'always': also refine client "
-        "points (which are kept); 'never': the paper's mesh over the points alone.",
+        "points (which are kept, never moved); 'never': the paper's mesh over the points "
+        "alone.",
     )
     lookahead: bool = Field(
         True,
