@@ -7,8 +7,9 @@ cannot fix such a vertex and the swaps cannot move it. Where a vertex's displace
 from a neighbour's by more than :data:`SUSPECT_PX`, the triangles around it (its *star*) are
 scored with the vertex moving as its neighbours do (a displacement at least :data:`SUPPORT` of
 them share, within :data:`REACH` of its mean edge); when the best of these raises the star's
-normalized mutual information by more than the swaps' threshold for that many pixels
-(:func:`core.optimize.gain_thresholds`), and folds none of its triangles, the vertex takes it.
+consistency (the swaps' cost: normalized mutual information by default) by more than the
+swaps' threshold for that many pixels (:func:`core.optimize.gain_thresholds`), and folds none
+of its triangles, the vertex takes it.
 
 Judged on Middlebury's truth the move is not always right about the vertex itself: of its 24
 moves there (both extents), 10 took a vertex more than 3 px off to within 3 px and 7 took one
@@ -23,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
-from pwlreg.core.optimize import gain_thresholds
-from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.optimize import COSTS, gain_thresholds
+from pwlreg.core.similarity import ScoringImages, triangle_statistics
 
 #: A vertex is tested when its displacement and a neighbour's differ by more than this (px).
 #: At 1 px it tested 664 of the real facade's 1190 vertices (285 at 2 px; 39 ms against 23) for
@@ -62,7 +63,7 @@ class Corrections:
     before : ndarray, shape (K, 2)
         Their moving positions before.
     gains : ndarray, shape (K,)
-        The NMI gain of each vertex's star.
+        The gain of each vertex's star (the swaps' cost).
     tested : int
         Vertices tested (those with a neighbour that moves differently).
     """
@@ -105,6 +106,7 @@ def contradicted_vertices(
     *,
     epsilon: float,
     epsilon_pixels: float,
+    cost: str = "mi",
     suspect: float = SUSPECT_PX,
 ) -> Corrections:
     """The ``movable`` vertices whose star the images score higher moving as a neighbour does.
@@ -119,6 +121,8 @@ def contradicted_vertices(
         Vertices that may move (measured, not given by the client).
     epsilon, epsilon_pixels : float
         The swaps' gain threshold (:func:`core.optimize.gain_thresholds`).
+    cost : str
+        The swaps' consistency measure, an entry of :data:`core.optimize.COSTS`.
     suspect : float
         Least difference (px) of displacement with a neighbour for a vertex to be tested.
 
@@ -166,22 +170,28 @@ def contradicted_vertices(
     # Each star as it is (its triangles' histograms once), then with its vertex at each
     # candidate.
     star, start = _stars(tris, n)
+    measure = COSTS[cost]
     owner, k = _ragged(start[tested], start[tested + 1] - start[tested])
     now = np.unique(star[k])
-    hist_now, _ = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]])
-    hist_now = _group_sums(hist_now[np.searchsorted(now, star[k])], owner, len(tested))
+    at = np.searchsorted(now, star[k])
+    hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
+                                        with_moments=measure.needs_moments)
+    hist_now = _group_sums(hist[at], owner, len(tested))
+    base = measure.measure(hist_now, None if moments is None else _group_sums(
+        moments[at], owner, len(tested)), images.bins)
     owner, k = _ragged(start[cand_v], start[cand_v + 1] - start[cand_v])
     rows = tris[star[k]]
     ref_tri, mov_tri = ref_v[rows], mov_v[rows]
     mov_tri[rows == cand_v[owner][:, None]] = cand_m[owner]  # once in each triangle
     folds = np.sign(_signed_areas(mov_tri)) != np.sign(_signed_areas(ref_tri))
     folded = np.bincount(owner, weights=folds, minlength=len(cand_v)) > 0
-    hist, _ = triangle_statistics(images, ref_tri, mov_tri)
-    hist = _group_sums(hist, owner, len(cand_v))
+    hist, moments = triangle_statistics(images, ref_tri, mov_tri,
+                                        with_moments=measure.needs_moments)
+    value = measure.measure(_group_sums(hist, owner, len(cand_v)), None if moments is None
+                            else _group_sums(moments, owner, len(cand_v)), images.bins)
 
-    base = mutual_information(hist_now, images.bins)[1]
     group = np.searchsorted(tested, cand_v)
-    gain = mutual_information(hist, images.bins)[1] - base[group]
+    gain = value - base[group]
     gain[folded] = -np.inf
     threshold = gain_thresholds(hist_now.sum(axis=1).astype(np.float64), epsilon,
                                 epsilon_pixels)

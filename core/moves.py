@@ -160,7 +160,7 @@ MOVES: dict[str, Move] = {
         f"a measured vertex (not the client's) whose displacement differs from a neighbour's "
         f"by more than {SUSPECT_PX:g} px moved as at least {SUPPORT} of its neighbours do "
         f"(within {SUPPORT_PX:g} px), by at most {REACH:g} of its mean edge, when that raised "
-        "the normalized mutual information of its triangles by more than the swaps' threshold "
+        "the consistency (the swaps' cost) of its triangles by more than the swaps' threshold "
         "and folded none of them; no two neighbours move in one pass (a corner where a "
         "foreground edge crosses the background is matched with the foreground's motion)",
     ),

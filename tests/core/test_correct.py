@@ -30,9 +30,9 @@ def _book_mesh() -> tuple:
     return prepare_images(reference, moving, DEFAULTS.bins), ref_v, mov_v, tris
 
 
-def _check(images, ref_v, mov_v, tris, movable=None):  # type: ignore[no-untyped-def]
+def _check(images, ref_v, mov_v, tris, movable=None, cost="mi"):  # type: ignore[no-untyped-def]
     movable = np.ones(len(ref_v), bool) if movable is None else movable
-    return contradicted_vertices(images, ref_v, mov_v, tris, movable,
+    return contradicted_vertices(images, ref_v, mov_v, tris, movable, cost=cost,
                                  epsilon=DEFAULTS.epsilon, epsilon_pixels=DEFAULTS.epsilon_pixels)
 
 
@@ -43,12 +43,13 @@ def test_a_right_mesh_keeps_its_vertices_where_neighbours_move_apart() -> None:
     assert len(found.vertices) == 0
 
 
-def test_a_vertex_off_its_plane_moves_back_with_its_neighbours() -> None:
+@pytest.mark.parametrize("cost", ["mi", "ncc"])
+def test_a_vertex_off_its_plane_moves_back_with_its_neighbours(cost: str) -> None:
     images, ref_v, mov_v, tris = _book_mesh()
     wrong = int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == 80))[0])
     off = mov_v.copy()
     off[wrong] += [5.0, -2.0]
-    found = _check(images, ref_v, off, tris)
+    found = _check(images, ref_v, off, tris, cost=cost)
     # Only that vertex: each of its neighbours has one neighbour (it) moving apart, and one
     # neighbour moves nothing.
     assert found.vertices.tolist() == [wrong]
@@ -60,7 +61,7 @@ def test_a_vertex_off_its_plane_moves_back_with_its_neighbours() -> None:
     # A vertex that may not move (the client's) stays where it is.
     fixed = np.ones(len(ref_v), bool)
     fixed[wrong] = False
-    assert len(_check(images, ref_v, off, tris, fixed).vertices) == 0
+    assert len(_check(images, ref_v, off, tris, fixed, cost).vertices) == 0
 
 
 def test_a_move_that_would_fold_a_triangle_is_not_made() -> None:
