@@ -45,8 +45,8 @@ REACH = 0.5
 #: The name of this move in :data:`core.moves.MOVES`.
 MOVE = "correct"
 
-#: Neighbours' displacements closer than this (px) to the vertex's or to one another's are
-#: one candidate.
+#: Candidate displacements are taken once per cell of this side (px): neighbours moving
+#: alike propose one candidate, not several.
 DISTINCT_PX = 0.5
 
 
@@ -65,7 +65,7 @@ class Corrections:
     gains : ndarray, shape (K,)
         The gain of each vertex's star (the swaps' cost).
     tested : int
-        Vertices tested (those with a neighbour that moves differently).
+        Vertices scored: those with a candidate left after the support and reach rules.
     """
 
     vertices: np.ndarray
@@ -104,6 +104,7 @@ def contradicted_vertices(
     triangles: np.ndarray,
     movable: np.ndarray,
     *,
+    witnesses: np.ndarray | None = None,
     epsilon: float,
     epsilon_pixels: float,
     cost: str = "mi",
@@ -116,21 +117,26 @@ def contradicted_vertices(
     images : ScoringImages
         The scoring images (:func:`core.similarity.prepare_images`).
     reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        The mesh's vertices in both images (pixels).
     triangles : ndarray of int, shape (T, 3)
+        The mesh's triangles (vertex indices).
     movable : ndarray of bool, shape (N,)
         Vertices that may move (measured, not given by the client).
+    witnesses : ndarray of bool, shape (N,), optional
+        Vertices whose motion may be proposed or support a proposal (the measured ones);
+        default every vertex.
     epsilon, epsilon_pixels : float
         The swaps' gain threshold (:func:`core.optimize.gain_thresholds`).
-    cost : str
+    cost : str, optional
         The swaps' consistency measure, an entry of :data:`core.optimize.COSTS`.
-    suspect : float
+    suspect : float, optional
         Least difference (px) of displacement with a neighbour for a vertex to be tested.
 
     Returns
     -------
     Corrections
-        No two of its vertices are neighbours: each was scored with its neighbours in place
-        (the larger gain first).
+        In vertex order. No two of its vertices are neighbours: each was scored with its
+        neighbours in place, and of two neighbours the one with the larger gain moves.
     """
     ref_v = np.asarray(reference_vertices, dtype=np.float64)
     mov_v = np.asarray(moving_vertices, dtype=np.float64)
@@ -141,9 +147,16 @@ def contradicted_vertices(
         return none
     edges = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     edges = np.unique(np.concatenate([edges, edges[:, ::-1]]), axis=0)
-    i, j = edges.T  # sorted by i: the neighbours of v are j[first[v]:first[v + 1]]
-    first = np.searchsorted(i, np.arange(n + 1))
+    a, b = edges.T  # sorted by a: the neighbours of v are b[around[v]:around[v + 1]]
+    around = np.searchsorted(a, np.arange(n + 1))
+    edge = np.bincount(a, weights=np.hypot(*(ref_v[a] - ref_v[b]).T), minlength=n)
+    edge /= np.maximum(np.diff(around), 1)  # each vertex's mean edge
     disp = mov_v - ref_v
+    # Only witnesses (measured vertices) propose a motion or support one: an extrapolated
+    # border vertex's motion is a guess.
+    seen = np.ones(n, bool) if witnesses is None else np.asarray(witnesses, bool)
+    i, j = a[seen[b]], b[seen[b]]
+    first = np.searchsorted(i, np.arange(n + 1))
     far = (np.hypot(*(disp[j] - disp[i]).T) > suspect) & np.asarray(movable, bool)[i]
     if not far.any():
         return none
@@ -158,8 +171,6 @@ def contradicted_vertices(
     which, k = _ragged(first[cand_v], first[cand_v + 1] - first[cand_v])
     near = np.hypot(*(disp[j[k]] - cand_d[which]).T) < SUPPORT_PX
     support = np.bincount(which, weights=near, minlength=len(cand_v))
-    edge = np.bincount(i, weights=np.hypot(*(ref_v[i] - ref_v[j]).T), minlength=n)
-    edge /= np.maximum(np.diff(first), 1)
     reach = np.hypot(*(cand_d - disp[cand_v]).T) <= REACH * edge[cand_v]
     ok = (support >= SUPPORT) & reach
     cand_v, cand_m = cand_v[ok], ref_v[cand_v[ok]] + cand_d[ok]
@@ -208,7 +219,7 @@ def contradicted_vertices(
         if not blocked[v]:
             keep[c] = True
             blocked[v] = True
-            blocked[j[first[v]:first[v + 1]]] = True
+            blocked[b[around[v]:around[v + 1]]] = True
     verts = verts[keep]
     return Corrections(verts, moves[keep], mov_v[verts], gains[keep], len(tested))
 

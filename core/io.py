@@ -256,11 +256,13 @@ def _as_points(value: object, field: str) -> np.ndarray:
 
 
 def _corrections(result: RegistrationResult) -> list[dict] | None:
+    """The vertex moves' records of a result (None when the move did not run)."""
     return None if result.corrections is None else result.corrections.to_list()
 
 
 def mesh_document(result: RegistrationResult) -> dict:
     """The ``mesh.json`` document (file contract) of a result."""
+    moved = _corrections(result)
     return {
         "reference_vertices": result.reference_vertices.tolist(),
         "moving_vertices": result.moving_vertices.tolist(),
@@ -275,8 +277,8 @@ def mesh_document(result: RegistrationResult) -> dict:
         "inserted": result.inserted.tolist(),
         "vertex_origins": result.origins,
         "insertion": result.insertion,
-        "corrections": _corrections(result),
-        "moves": move_counts(result.origins, result.search.steps, _corrections(result)),
+        "corrections": moved,
+        "moves": move_counts(result.origins, result.search.steps, moved=moved),
         "quality": result.quality.to_dict(),
         "triangle_scores": [
             None if not np.isfinite(v) else round(float(v), 4)
@@ -301,6 +303,7 @@ def mesh_document(result: RegistrationResult) -> dict:
 def convergence_document(result: RegistrationResult) -> dict:
     """The ``convergence.json`` document (file contract) of a result."""
     s = result.search
+    moved = _corrections(result)
     return {
         "cost": result.options.cost,
         "optimizer": result.options.optimizer,
@@ -318,9 +321,9 @@ def convergence_document(result: RegistrationResult) -> dict:
             }
             for st in s.steps
         ],
-        "corrections": _corrections(result),
+        "corrections": moved,
         "final": {"mi": s.final_mi, "nmi": s.final_nmi},
-        "moves": move_counts(result.origins, s.steps, _corrections(result)),
+        "moves": move_counts(result.origins, s.steps, moved=moved),
         "stopped_because": s.stopped_because,
         "evaluations": s.evaluations,
     }

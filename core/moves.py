@@ -188,7 +188,9 @@ def insertions() -> list[tuple[str, Move]]:
     return [(name, m) for name, m in MOVES.items() if m.kind == "insertion"]
 
 
-def move_counts(origins: list[str], steps: list, moved: list[dict] | None = None) -> list[dict]:
+def move_counts(
+    origins: list[str], steps: list, *, moved: list[dict] | None = None
+) -> list[dict]:
     """Per move of :data:`MOVES` that was made: its name, kind, count and reason.
 
     ``origins`` are the mesh vertices' origins (a move's name, or ``client``, ``matched``,

@@ -343,7 +343,8 @@ def register(
         corrections = contradicted_vertices(
             images, mesh.reference, mesh.moving, mesh.triangles,
             ~tri_report.extrapolated & (np.array(origins) != "client"),
-            epsilon=opts.epsilon, epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
+            witnesses=~tri_report.extrapolated, epsilon=opts.epsilon,
+            epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
         if len(corrections.vertices):
             moving_v = mesh.moving.copy()
             moving_v[corrections.vertices] = corrections.moving

@@ -39,7 +39,7 @@ def _check(images, ref_v, mov_v, tris, movable=None, cost="mi"):  # type: ignore
 def test_a_right_mesh_keeps_its_vertices_where_neighbours_move_apart() -> None:
     images, ref_v, mov_v, tris = _book_mesh()
     found = _check(images, ref_v, mov_v, tris)
-    assert found.tested > 0  # the sheared plane's neighbours differ by more than SUSPECT_PX
+    assert found.tested > 0  # scored: the sheared plane's neighbours differ by over SUSPECT_PX
     assert len(found.vertices) == 0
 
 
@@ -62,6 +62,55 @@ def test_a_vertex_off_its_plane_moves_back_with_its_neighbours(cost: str) -> Non
     fixed = np.ones(len(ref_v), bool)
     fixed[wrong] = False
     assert len(_check(images, ref_v, off, tris, fixed, cost).vertices) == 0
+
+
+def test_only_witnesses_propose_a_motion() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    wrong = int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == 80))[0])
+    off = mov_v.copy()
+    off[wrong] += [5.0, -2.0]
+    # Its neighbours' motions (true here) are guesses, as a border's extrapolated ones are.
+    guessed = np.ones(len(ref_v), bool)
+    guessed[np.unique(tris[(tris == wrong).any(axis=1)])] = False
+    guessed[wrong] = True
+    found = contradicted_vertices(images, ref_v, off, tris, np.ones(len(ref_v), bool),
+                                  witnesses=guessed, epsilon=DEFAULTS.epsilon,
+                                  epsilon_pixels=DEFAULTS.epsilon_pixels)
+    assert wrong not in found.vertices.tolist()
+    assert wrong in _check(images, ref_v, off, tris).vertices.tolist()
+
+
+def test_of_two_neighbours_off_their_plane_one_moves_in_a_pass() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    pair = [int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == y))[0]) for y in (45, 80)]
+    assert any(set(pair) <= set(t) for t in tris.tolist())  # neighbours
+    off = mov_v.copy()
+    off[pair] += [5.0, -2.0]
+    found = _check(images, ref_v, off, tris)
+    # Each was scored with the other in place: only the larger gain moves, to its truth.
+    assert len(found.vertices) == 1 and found.vertices[0] in pair
+    np.testing.assert_allclose(found.moving[0], mov_v[found.vertices[0]], atol=1e-9)
+    # The next pass moves the other one.
+    again = off.copy()
+    again[found.vertices] = found.moving
+    second = _check(images, ref_v, again, tris)
+    assert second.vertices.tolist() == [v for v in pair if v != found.vertices[0]]
+
+
+def test_a_client_point_the_images_contradict_is_kept_as_sent() -> None:
+    reference, moving = open_book((200, 160), CREASE, seed=5)
+    xs, ys = np.meshgrid([10, 35, 60, 85, 115, 140, 165, 190], [10, 45, 80, 115, 150])
+    ref_pts = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    mov_pts = np.column_stack(book_map(ref_pts[:, 0], ref_pts[:, 1], CREASE))
+    wrong = int(np.flatnonzero((ref_pts[:, 0] == 35) & (ref_pts[:, 1] == 80))[0])
+    mov_pts[wrong] += [5.0, -2.0]
+    options = {"epipolar_filter": False, "extent": "hull", "insert_vertices": "always"}
+    result = register(reference, moving, (ref_pts, mov_pts), options)
+    assert result.corrections is not None  # the move ran (with the insertion)
+    at = int(np.argmin(np.linalg.norm(result.reference_vertices - ref_pts[wrong], axis=1)))
+    assert result.origins[at] == "client"
+    np.testing.assert_allclose(result.moving_vertices[at], mov_pts[wrong], atol=0.01)
+    assert all(result.origins[v] != "client" for v in result.corrections.vertices)
 
 
 def test_a_move_that_would_fold_a_triangle_is_not_made() -> None:
@@ -97,9 +146,9 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
     result = register(pair.reference, pair.moving, options={"extent": "frame"})
     moved = result.corrections
     assert moved is not None and len(moved.vertices) > 0
-    assert all(result.origins[v] != "client" and not result.extrapolated[v]
-               for v in moved.vertices)
+    assert not result.extrapolated[moved.vertices].any()
     np.testing.assert_allclose(result.moving_vertices[moved.vertices], moved.moving, atol=0.01)
+    assert (np.linalg.norm(moved.moving - moved.before, axis=1) > 2.0).all()
     before = result.moving_vertices.copy()
     before[moved.vertices] = moved.before
 
@@ -109,7 +158,12 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
 
     assert epe(result.moving_vertices) < epe(before) - 0.01  # measured: 1.293 -> 1.264 px
     mesh, convergence = mesh_document(result), convergence_document(result)
-    assert mesh["corrections"] == convergence["corrections"] == moved.to_list()
+    assert mesh["corrections"] == convergence["corrections"]
+    for record in mesh["corrections"]:
+        v = record["vertex"]
+        np.testing.assert_allclose(record["to"], mesh["moving_vertices"][v], atol=0.01)
+        assert np.linalg.norm(np.subtract(record["from"], record["to"])) > 2.0
+        assert record["move"] == "correct" and record["gain"] > 0
     counts = {m["move"]: m for m in mesh["moves"]}
     assert counts["correct"]["count"] == len(moved.vertices)
     assert counts["correct"]["kind"] == "vertex"
