@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pwlreg.core.correct import GAIN_FACTOR, REACH, SUPPORT, SUPPORT_PX, SUSPECT_PX
 from pwlreg.core.correct import MOVE as CORRECT
-from pwlreg.core.correct import REACH, SUPPORT, SUPPORT_PX, SUSPECT_PX
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.refine import (
     EPI_REACH,
@@ -160,8 +160,9 @@ MOVES: dict[str, Move] = {
         f"a measured vertex (not the client's) whose displacement differs from a neighbour's "
         f"by more than {SUSPECT_PX:g} px moved as at least {SUPPORT} of its neighbours do "
         f"(within {SUPPORT_PX:g} px), by at most {REACH:g} of its mean edge, when that raised "
-        "the consistency (the swaps' cost) of its triangles by more than the swaps' threshold "
-        "and folded none of them; no two neighbours move in one pass (a corner where a "
+        f"the consistency (the swaps' cost) of its triangles by more than {GAIN_FACTOR:g} times "
+        "the swaps' threshold and folded none of them, only measured neighbours proposing a "
+        "motion; no two neighbours move in one pass (a corner where a "
         "foreground edge crosses the background is matched with the foreground's motion)",
     ),
     "swap": Move(
