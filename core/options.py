@@ -64,7 +64,7 @@ class RegistrationOptions(BaseModel):
         "flow jumps (a depth step inside a triangle), points on both sides of the jump are "
         "searched for along their epipolar lines too, up to half the matched pairs more. The "
         "mesh is built again over all of them. After the swaps, a measured vertex that the "
-        "images contradict (its triangles gain more than the swaps' threshold when it moves "
+        "images contradict (its triangles gain more than twice the swaps' threshold when it moves "
         "as at least two of its neighbours do) is moved so (the 'correct' move). "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
