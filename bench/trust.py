@@ -136,6 +136,13 @@ def _truth_at(scene: Scene, points: np.ndarray, reach: int = 2) -> np.ndarray:
     return out
 
 
+def _error(moving: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Distance of each pair's moving point to its truth; infinite where the truth is unknown
+    (such a pair counts as wrong)."""
+    err = np.linalg.norm(moving - truth, axis=1)
+    return np.where(np.isfinite(err), err, np.inf)
+
+
 def run_case(case: Case) -> dict:
     """Register one synthetic case automatically and score it against its truth."""
     scene = case.make()
@@ -165,18 +172,13 @@ def run_case(case: Case) -> dict:
     matched = np.where(same[:, None], r.moving_vertices[at], r.points.moving)
     ref_pts = np.concatenate([r.points.reference, r.reference_vertices[r.inserted]])
     mov_pts = np.concatenate([matched, r.moving_vertices[r.inserted]])
-    truth = _truth_at(scene, ref_pts)
     if r.corrections is not None and len(r.corrections.vertices):
         c = r.corrections
         t = _truth_at(scene, r.reference_vertices[c.vertices])
-        row["corrected"] = [len(c.vertices),
-                            int(np.count_nonzero(~(np.linalg.norm(c.before - t, axis=1)
-                                                   <= WRONG_PX))),
-                            int(np.count_nonzero(~(np.linalg.norm(c.moving - t, axis=1)
-                                                   <= WRONG_PX)))]
-    err = np.linalg.norm(mov_pts - truth, axis=1)
+        row["corrected"] = [len(c.vertices), int(np.count_nonzero(_error(c.before, t) > WRONG_PX)),
+                            int(np.count_nonzero(_error(c.moving, t) > WRONG_PX))]
+    err = _error(mov_pts, _truth_at(scene, ref_pts))
     row["inserted"] = int(r.inserted.sum())
-    err = np.where(np.isfinite(err), err, np.inf)
     row["inserted_wrong"] = int(np.count_nonzero(err[len(r.points.reference):] > WRONG_PX))
     sources = np.array(["matched"] * len(r.points.reference)
                        + [o for o, i in zip(r.origins, r.inserted, strict=True) if i])

@@ -25,6 +25,7 @@ import numpy as np
 from scipy import sparse
 
 from pwlreg.core.optimize import COSTS, gain_thresholds
+from pwlreg.core.raster import orientation
 from pwlreg.core.similarity import ScoringImages, triangle_statistics
 
 #: A vertex is tested when its displacement and a neighbour's differ by more than this (px).
@@ -96,12 +97,6 @@ def _stars(tris: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     order = np.argsort(owner, kind="stable") // 3
     start = np.concatenate([[0], np.cumsum(np.bincount(owner, minlength=n))])
     return order, start
-
-
-def _signed_areas(tri: np.ndarray) -> np.ndarray:
-    a, b, c = tri[..., 0, :], tri[..., 1, :], tri[..., 2, :]
-    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (
-        b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
 
 
 def contradicted_vertices(
@@ -201,7 +196,7 @@ def contradicted_vertices(
     rows = tris[star[k]]
     ref_tri, mov_tri = ref_v[rows], mov_v[rows]
     mov_tri[rows == cand_v[owner][:, None]] = cand_m[owner]  # once in each triangle
-    folds = np.sign(_signed_areas(mov_tri)) != np.sign(_signed_areas(ref_tri))
+    folds = orientation(*mov_tri.transpose(1, 0, 2)) != orientation(*ref_tri.transpose(1, 0, 2))
     folded = np.bincount(owner, weights=folds, minlength=len(cand_v)) > 0
     hist, moments = triangle_statistics(images, ref_tri, mov_tri,
                                         with_moments=measure.needs_moments)

@@ -299,13 +299,13 @@ def register(
                         n for k, n in by_source.items() if MOVES[k].own_budget is None)
                 else:
                     budget = int(move.own_budget * matched) - by_source[name]
-                search = Search(
+                given = Search(
                     images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
                     epsilon_pixels=opts.epsilon_pixels, round=round_)
-                if move.runs is not None and not move.runs(search):
+                if move.runs is not None and not move.runs(given):
                     continue
-                found = move.find(current, search)
+                found = move.find(current, given)
                 if found is None:
                     continue
                 searched.add(name)
