@@ -173,10 +173,16 @@ def run_case(case: Case) -> dict:
     ref_pts = np.concatenate([r.points.reference, r.reference_vertices[r.inserted]])
     mov_pts = np.concatenate([matched, r.moving_vertices[r.inserted]])
     if r.corrections is not None and len(r.corrections.vertices):
+        # Per vertex move: vertices moved, of which wrong before, wrong after (a vertex of
+        # unknown truth, such as an occluded border vertex, counts as wrong both times).
         c = r.corrections
         t = _truth_at(scene, r.reference_vertices[c.vertices])
-        row["corrected"] = [len(c.vertices), int(np.count_nonzero(_error(c.before, t) > WRONG_PX)),
-                            int(np.count_nonzero(_error(c.moving, t) > WRONG_PX))]
+        wrong_before, wrong_after = (_error(p, t) > WRONG_PX for p in (c.before, c.moving))
+        moves = np.array(c.moves)
+        row["corrected"] = {str(m): [int(np.count_nonzero(moves == m)),
+                                     int(np.count_nonzero(wrong_before[moves == m])),
+                                     int(np.count_nonzero(wrong_after[moves == m]))]
+                            for m in dict.fromkeys(c.moves)}
     err = _error(mov_pts, _truth_at(scene, ref_pts))
     row["inserted"] = int(r.inserted.sum())
     row["inserted_wrong"] = int(np.count_nonzero(err[len(r.points.reference):] > WRONG_PX))
@@ -345,8 +351,10 @@ def summarize(rows: list[dict]) -> dict:
         "inserted_wrong": sum(r.get("inserted_wrong", 0) for r in scored),
         "wrong_by_source": by_source,
         "wrong_by_verdict": {v: wn for v, wn in by_verdict.items() if wn[1]},
-        # Vertices the `correct` move moved: how many, wrong before, wrong after.
-        "corrected": [sum(r.get("corrected", [0, 0, 0])[k] for r in scored) for k in range(3)],
+        # Per vertex move: vertices moved, wrong before, wrong after.
+        "corrected": {m: [sum(r.get("corrected", {}).get(m, [0, 0, 0])[k] for r in scored)
+                          for k in range(3)]
+                      for m in dict.fromkeys(m for r in scored for m in r.get("corrected", {}))},
         "mostly_wrong_called_good": sum(
             r["verdict"] == "good" and r.get("wrong_share", 0) > 0.5 for r in scored),
         "unrelated_not_unreliable": sum(r["verdict"] not in ("unreliable", "refused")
@@ -371,8 +379,9 @@ def write_report(rows: list[dict], summary: dict, mb: list[dict], hard: list[dic
             if n) + "; by the verdict of their result: " + ", ".join(
             f"`{v}` {w} / {n} ({100 * w / n:.2f} %)" for v, (w, n) in
             s["wrong_by_verdict"].items()) + ".",
-        f"* Vertices moved by the `correct` move: {s['corrected'][0]}, of which wrong before "
-        f"{s['corrected'][1]}, after {s['corrected'][2]}.",
+        "* Vertices moved by the vertex moves: " + (", ".join(
+            f"`{m}` {n}, of which wrong before {before}, after {after}"
+            for m, (n, before, after) in s["corrected"].items()) or "none") + ".",
         f"* Cases whose kept pairs are mostly wrong and called `good`: "
         f"**{s['mostly_wrong_called_good']}**.",
         f"* Unrelated pairs not `unreliable` or refused: **{s['unrelated_not_unreliable']}**.",

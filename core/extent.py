@@ -139,23 +139,38 @@ def frame_vertices(
     near = tree.query(border, 1)[0] < 0.25 * spacing
     near[:4] = False
     border = border[~near]
-    candidates = [local_affine_extrapolation(ref, mov, border)]
-    H = _global_homography(ref, mov)
-    if H is not None:
-        q = border @ H[:, :2].T + H[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mapped = q[:, :2] / q[:, 2:3]
-        if np.all(np.isfinite(mapped)) and np.all(q[:, 2] > 0):
-            candidates.append(mapped)
+    candidates = extrapolations(ref, mov, border)
     if images is None or len(candidates) == 1:
         return border, candidates[0]
+
     def level(p: np.ndarray) -> np.ndarray:
         return (p + 0.5) * scale - 0.5
 
     chosen = choose_by_agreement(
-        images, level(ref), level(mov), level(border), level(np.stack(candidates))
+        images, level(ref), level(mov), level(border), level(candidates)
     )
     return border, (chosen + 0.5) / scale - 0.5
+
+
+def extrapolations(reference: np.ndarray, moving: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """Moving positions of ``targets`` extrapolated from the pairs: by
+    :func:`local_affine_extrapolation`, then (when it can be fitted and maps every target in
+    front of the camera) by the pairs' robust global homography.
+
+    Returns
+    -------
+    ndarray, shape (C, M, 2)
+        ``C`` (1 or 2) candidates for each of the ``M`` targets.
+    """
+    candidates = [local_affine_extrapolation(reference, moving, targets)]
+    H = _global_homography(reference, moving)
+    if H is not None:
+        q = targets @ H[:, :2].T + H[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mapped = q[:, :2] / q[:, 2:3]
+        if np.all(np.isfinite(mapped)) and np.all(q[:, 2] > 0):
+            candidates.append(mapped)
+    return np.stack(candidates)
 
 
 def _global_homography(reference: np.ndarray, moving: np.ndarray) -> np.ndarray | None:

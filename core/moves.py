@@ -4,9 +4,10 @@ Three kinds. *Insertions* run while the mesh is built, on the automatic path (or
 ``insert_vertices="always"``): each finds new conjugate pairs from the images guided by the
 current mesh (:class:`core.refine.Guide`), and the mesh is built again over the old and the new
 pairs. *Swaps* are the optimizer's changes of the triangulation (:mod:`core.optimize`), recorded
-step by step with their gain. *Vertex* moves change a measured vertex's moving position after
-the swaps, on the same path as the insertions (:mod:`core.correct`), each recorded with its
-gain. Every move's name and reason go into ``mesh.json`` and
+step by step with their gain. *Vertex* moves change a vertex's moving position after the
+swaps, on the same path as the insertions (:mod:`core.correct`): a measured vertex the images
+contradict, an extrapolated border vertex searched for along its epipolar line; each recorded
+with its gain. Every move's name and reason go into ``mesh.json`` and
 ``convergence.json``, and every mesh vertex says which move (or the matcher) put it there.
 Adding an insertion source is one entry here.
 """
@@ -18,7 +19,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pwlreg.core.correct import GAIN_FACTOR, REACH, SUPPORT, SUPPORT_PX, SUSPECT_PX
+from pwlreg.core.correct import (
+    BORDER_MARGIN,
+    BORDER_MOVE,
+    GAIN_FACTOR,
+    REACH,
+    SUPPORT,
+    SUPPORT_PX,
+    SUSPECT_PX,
+)
 from pwlreg.core.correct import MOVE as CORRECT
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.refine import (
@@ -164,6 +173,16 @@ MOVES: dict[str, Move] = {
         "the swaps' threshold and folded none of them, only measured neighbours proposing a "
         "motion; no two neighbours move in one pass (a corner where a "
         "foreground edge crosses the background is matched with the foreground's motion)",
+    ),
+    BORDER_MOVE: Move(
+        "vertex",
+        "an extrapolated vertex on the frame's border moved along its epipolar line, within "
+        "the segment its extrapolations (the nearest pairs' local affine map, the pairs' "
+        f"homography) span, extended by its length and {BORDER_MARGIN:g} px at both ends, "
+        "when that raised the consistency of its triangles as the correct move must (the "
+        "images scored at the verdict's scale); no two neighbours move in one pass (a surface "
+        "that shows only along the border, such as a floor nearer than the pairs above it, "
+        "is missed by both extrapolations)",
     ),
     "swap": Move(
         "swap",

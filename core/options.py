@@ -65,7 +65,10 @@ class RegistrationOptions(BaseModel):
         "searched for along their epipolar lines too, up to half the matched pairs more. The "
         "mesh is built again over all of them. After the swaps, a measured vertex that the "
         "images contradict (its triangles gain more than twice the swaps' threshold when it moves "
-        "as at least two of its neighbours do) is moved so (the 'correct' move). "
+        "as at least two of its neighbours do) is moved so (the 'correct' move), and with "
+        "extent='frame' each extrapolated border vertex is searched for along its epipolar "
+        "line around its extrapolations, moved where its triangles gain as much (the 'border' "
+        "move). "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
         "alone.",

@@ -13,9 +13,9 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from pwlreg.core.correct import Corrections, contradicted_vertices
+from pwlreg.core.correct import Corrections, border_search, contradicted_vertices
 from pwlreg.core.errors import InputError, UnreliableResultError
-from pwlreg.core.extent import frame_vertices
+from pwlreg.core.extent import extrapolations, frame_vertices
 from pwlreg.core.imaging import matching_image, to_gray8
 from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
@@ -90,8 +90,8 @@ class RegistrationResult:
     insertion : dict of str to int or None
         The counts of the insertion step (None when it did not run).
     corrections : Corrections or None
-        The vertices the ``correct`` move of :data:`core.moves.MOVES` moved after the swaps
-        (None when it did not run: on the path with insertion only).
+        The vertices the vertex moves of :data:`core.moves.MOVES` (``correct``, ``border``)
+        moved after the swaps (None when they did not run: on the path with insertion only).
     """
 
     reference_vertices: np.ndarray
@@ -345,10 +345,19 @@ def register(
             ~tri_report.extrapolated & (np.array(origins) != "client"),
             witnesses=~tri_report.extrapolated, epsilon=opts.epsilon,
             epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
+        mesh = _moved(mesh, corrections)
+        border = tri_report.extrapolated
+        if conjugate.epipolar is not None and border.any():
+            # On the level the verdict and the border's first choice look at.
+            found = border_search(
+                level, mesh.reference, mesh.moving, mesh.triangles, border,
+                extrapolations(mesh.reference[~border], mesh.moving[~border],
+                               mesh.reference[border]),
+                conjugate.epipolar.matrix, epsilon=opts.epsilon,
+                epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
+            mesh = _moved(mesh, found)
+            corrections = corrections + found
         if len(corrections.vertices):
-            moving_v = mesh.moving.copy()
-            moving_v[corrections.vertices] = corrections.moving
-            mesh = Mesh(mesh.reference, moving_v, mesh.triangles)
             after = keep_initial(mesh, images, opts, None)
             search = replace(search, final_mi=after.final_mi, final_nmi=after.final_nmi)
     timings["optimization_s"] = time.perf_counter() - t
@@ -405,6 +414,15 @@ def register(
         insertion=insertion,
         corrections=corrections,
     )
+
+
+def _moved(mesh: Mesh, corrections: Corrections) -> Mesh:
+    """The mesh with the vertices ``corrections`` moves at their new positions."""
+    if not len(corrections.vertices):
+        return mesh
+    moving = mesh.moving.copy()
+    moving[corrections.vertices] = corrections.moving
+    return Mesh(mesh.reference, moving, mesh.triangles)
 
 
 def warm_up() -> None:

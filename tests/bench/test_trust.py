@@ -30,10 +30,11 @@ def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_goo
     rows = [
         {"name": "a", "group": "polyhedral", "status": "successful", "verdict": "good",
          "points": 90, "inserted": 10, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0,
-         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}, "corrected": [3, 2, 1]},
+         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}, "corrected": {"correct": [3, 2, 1]}},
         {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "doubtful",
          "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0,
-         "wrong_by_source": {"matched": [8, 10]}},
+         "wrong_by_source": {"matched": [8, 10]},
+         "corrected": {"correct": [1, 1, 0], "border": [4, 1, 2]}},
         {"name": "c", "group": "unrelated", "status": "successful", "verdict": "doubtful",
          "points": 5, "wrong_share": 1.0, "epe_mean": float("nan")},
     ]
@@ -44,7 +45,7 @@ def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_goo
     assert s["verdicts"]["good"]["cases"] == 1
     assert s["wrong_by_source"] == {"matched": [8, 100], "step": [1, 10]}
     assert s["wrong_by_verdict"] == {"good": [1, 100], "doubtful": [8, 10]}
-    assert s["corrected"] == [3, 2, 1]
+    assert s["corrected"] == {"correct": [4, 3, 1], "border": [4, 1, 2]}
     rows[1]["verdict"] = "good"
     assert summarize(rows)["mostly_wrong_called_good"] == 1
 
