@@ -1,4 +1,7 @@
-"""Vertex correction: a measured vertex that the images contradict moves with a neighbour.
+"""Vertex moves after the swaps: a measured vertex that the images contradict moves with a
+neighbour (:func:`contradicted_vertices`, the move ``correct``); an extrapolated border vertex
+is searched for along its epipolar line (:func:`border_search`, the move ``border``). Both
+score a vertex by its star and accept a candidate by the same rule.
 
 A corner where a foreground edge crosses the background (a T-junction) looks the same in both
 images but belongs to neither surface: the matcher pairs it with the foreground's motion while
@@ -9,7 +12,8 @@ scored with the vertex moving as its neighbours do (a displacement at least :dat
 them share, within :data:`REACH` of its mean edge); when the best of these raises the star's
 consistency (the swaps' cost: normalized mutual information by default) by more than
 :data:`GAIN_FACTOR` times the swaps' threshold for that many pixels
-(:func:`core.optimize.gain_thresholds`), and folds none of its triangles, the vertex takes it.
+(:func:`core.optimize.gain_thresholds`), and folds none of its triangles, the vertex takes it;
+no two neighbours move in one pass.
 
 Judged on Middlebury's truth the move is not always right about the vertex itself: of its 22
 moves there (both extents), 10 took a vertex more than 3 px off to within 3 px and 6 took one
@@ -85,7 +89,8 @@ class Corrections:
     gains : ndarray, shape (K,)
         The gain of each vertex's star (the swaps' cost).
     tested : int
-        Vertices scored: those with a candidate left after the move's rules.
+        Vertices scored: those with a candidate left after the move's rules (for the border
+        search, a candidate inside the moving image).
     moves : tuple of str
         The move of each (its name in :data:`core.moves.MOVES`).
     """
@@ -95,12 +100,12 @@ class Corrections:
     before: np.ndarray
     gains: np.ndarray
     tested: int
-    moves: tuple[str, ...] = ()
+    moves: tuple[str, ...]
 
     @classmethod
     def none(cls) -> Corrections:
         """No vertex moved."""
-        return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0)
+        return cls(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), 0, ())
 
     def __add__(self, other: Corrections) -> Corrections:
         """Both moves' vertices (each moved by one of them), in vertex order."""
@@ -229,7 +234,7 @@ def _star_gains(
     epsilon: float,
     epsilon_pixels: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per candidate (vertex ``cand_v``, sorted, at ``cand_m``), the gain of its vertex's star
+    """Per candidate (vertex ``cand_v`` at ``cand_m``), the gain of its vertex's star
     (``stars`` as :func:`_stars` gives them) in the swaps' cost (-inf where a triangle folds)
     and :data:`GAIN_FACTOR` times the swaps' threshold for the star's pixels."""
     tested = np.unique(cand_v)
@@ -329,7 +334,7 @@ def border_search(
     feet on the line), extended by its own length and :data:`BORDER_MARGIN` pixels at both
     ends: :data:`BORDER_COARSE` steps either side of its middle, then every pixel of the level
     around the best of them. A later pass (of :data:`BORDER_PASSES`) searches again the
-    vertices beside one that moved and those a neighbour's move held back.
+    vertices beside one that moved (among them those it held back).
 
     Parameters
     ----------
@@ -378,7 +383,8 @@ def border_search(
     origin = mov_v[idx] - (np.einsum("ij,ij->i", line[:, :2], mov_v[idx]) + line[:, 2])[:, None] \
         * line[:, :2]
     along = np.einsum("ckj,kj->ck", level(extrapolated)[:, ok] - origin, direction)
-    low, high = np.minimum(along.min(axis=0), 0.0), np.maximum(along.max(axis=0), 0.0)
+    low = np.minimum(np.nanmin(along, axis=0), 0.0)
+    high = np.maximum(np.nanmax(along, axis=0), 0.0)
     extend = (high - low) + BORDER_MARGIN * scale
     low, high = low - extend, high + extend
     # Beyond the moving image the scoring samples replicate its border: a vertex moved there
@@ -390,15 +396,22 @@ def border_search(
     gains = np.zeros(n)
 
     def scored(which: np.ndarray, t: np.ndarray):
+        # Clipped to the segment, steps repeat at its ends: each position once, in vertex order.
         t = np.clip(t, low[which], high[which])
+        order = np.lexsort((t, which))
+        which, t = which[order], t[order]
+        once = np.ones(len(t), bool)
+        once[1:] = (np.diff(which) != 0) | (np.diff(t) > 1e-9)
         cand = origin[which] + t[:, None] * direction[which]
-        inside = np.all((cand >= -0.5) & (cand <= [mw - 0.5, mh - 0.5]), axis=1)
+        inside = once & np.all((cand >= -0.5) & (cand <= [mw - 0.5, mh - 0.5]), axis=1)
         which, t, cand = which[inside], t[inside], cand[inside]
         gain, threshold = _star_gains(images, ref_v, mov_v, tris, idx[which], cand,
                                       stars=stars, cost=cost, epsilon=epsilon,
                                       epsilon_pixels=epsilon_pixels)
+        tested[which] = True
         return which, t, cand, gain, threshold
 
+    tested = np.zeros(len(idx), bool)
     searched = np.arange(len(idx))
     for _ in range(BORDER_PASSES):
         if not len(searched):
@@ -411,9 +424,11 @@ def border_search(
         w1, t1, c1, g1, h1 = scored(searched[which],
                                     mid[which] + (k - BORDER_COARSE) * step[which])
         best = _best(w1, g1)
-        # ... then every pixel of the level between the best step's neighbours.
+        # ... then every other pixel of the level between the best step's neighbours.
         width = np.ceil(step[np.searchsorted(searched, w1[best])]).astype(np.int64) - 1
         which, k = _ragged(np.zeros(len(width), np.int64), 2 * width + 1)
+        fine = k != width[which]
+        which, k = which[fine], k[fine]
         w2, _, c2, g2, h2 = scored(w1[best][which], t1[best][which] + k - width[which])
         w, cand, gain, threshold = (np.concatenate(p) for p in (
             (w1, w2), (c1, c2), (g1, g2), (h1, h2)))
@@ -426,9 +441,8 @@ def border_search(
             break
         mov_v[verts[keep]] = moves[keep]
         gains[verts[keep]] += gain[keep]
-        # Again: those held back, and those beside one that moved.
+        # Again: those beside one that moved (among them those it held back).
         again = np.zeros(n, bool)
-        again[verts[~keep]] = True
         for m in verts[keep]:
             again[b[around[m]:around[m + 1]]] = True
         searched = np.flatnonzero(again[idx])
@@ -437,8 +451,8 @@ def border_search(
     def full(p: np.ndarray) -> np.ndarray:
         return (p + 0.5) / scale - 0.5
 
-    return Corrections(moved, full(mov_v[moved]), full(before[moved]), gains[moved], len(idx),
-                       (BORDER_MOVE,) * len(moved))
+    return Corrections(moved, full(mov_v[moved]), full(before[moved]), gains[moved],
+                       int(tested.sum()), (BORDER_MOVE,) * len(moved))
 
 
 def _ragged(starts: np.ndarray, sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,7 +30,8 @@ def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_goo
     rows = [
         {"name": "a", "group": "polyhedral", "status": "successful", "verdict": "good",
          "points": 90, "inserted": 10, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0,
-         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]}, "corrected": {"correct": [3, 2, 1]}},
+         "wrong_by_source": {"matched": [0, 90], "step": [1, 10]},
+         "corrected": {"correct": [3, 2, 1]}},
         {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "doubtful",
          "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0,
          "wrong_by_source": {"matched": [8, 10]},

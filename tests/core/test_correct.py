@@ -8,12 +8,18 @@ from scipy.spatial import Delaunay
 
 from bench import middlebury
 from bench.metrics import endpoint_error
-from pwlreg.core.correct import BORDER_MOVE, MOVE, border_search, contradicted_vertices
+from pwlreg.core.correct import (
+    BORDER_MOVE,
+    MOVE,
+    Corrections,
+    border_search,
+    contradicted_vertices,
+)
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.moves import MOVES
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import register
-from pwlreg.core.similarity import prepare_images
+from pwlreg.core.similarity import prepare_images, reduced
 from tests.core.synthetic import book_map, open_book, texture
 
 CREASE = 100.0
@@ -173,9 +179,53 @@ def test_a_right_border_vertex_stays() -> None:
 
 
 def test_a_border_vertex_moves_no_farther_than_its_extrapolations_allow() -> None:
-    # Extrapolated 4 and 5 px right: searched over [1, 8], the truth (12) is out of reach.
+    # Extrapolated 4 and 5 px right: searched over [1, 8], the truth (12) is out of reach;
+    # the vertex goes as near as it may.
     found = _border_star(4.0, [4.0, 5.0])
-    assert len(found.vertices) == 0 or found.moving[0, 0] - 100 <= 8.0 + 1e-6
+    assert found.vertices.tolist() == [0]
+    np.testing.assert_allclose(found.moving[0], [108, 159.5], atol=1e-6)
+
+
+def test_a_border_vertex_found_on_reduced_images_along_a_slanted_line() -> None:
+    # The moving image is the reference moved by (24, -12): epipolar lines are slanted. The
+    # images are scored halved (scale 0.5); the vertex starts a third of the way and its
+    # extrapolations reach two thirds.
+    shift = np.array([24, -12])
+    reference = texture((320, 400), seed=3)
+    moving = np.roll(np.roll(reference, shift[0], axis=1), shift[1], axis=0)
+    images, scale = reduced(prepare_images(reference, moving, DEFAULTS.bins), 200)
+    assert scale == 0.5
+    ref_v = np.array([[200, 319.5], [80, 200], [200, 120], [320, 200]], float)
+    mov_v = ref_v + shift
+    mov_v[0] = ref_v[0] + shift / 3
+    candidates = np.array([[ref_v[0] + shift / 3], [ref_v[0] + 2 * shift / 3]])
+    epipole = np.array([shift[0], shift[1], 0.0])  # F = [t]x for a translation t
+    F = 7.3 * np.array([[0, -epipole[2], epipole[1]], [epipole[2], 0, -epipole[0]],
+                        [-epipole[1], epipole[0], 0]])
+    found = border_search(images, ref_v, mov_v, np.array([[0, 1, 2], [0, 2, 3]]),
+                          np.array([True, False, False, False]), candidates, F,
+                          epsilon=DEFAULTS.epsilon, epsilon_pixels=DEFAULTS.epsilon_pixels,
+                          scale=scale)
+    assert found.vertices.tolist() == [0] and found.tested == 1
+    np.testing.assert_allclose(found.before[0], mov_v[0])  # full-image pixels
+    np.testing.assert_allclose(found.moving[0], ref_v[0] + shift, atol=1.5)
+    x_ref, x_mov = np.r_[ref_v[0], 1], np.r_[found.moving[0], 1]
+    line = F @ x_ref
+    assert abs(x_mov @ line) / np.hypot(*line[:2]) < 1e-6  # on the line
+
+
+def test_both_moves_records_join_in_vertex_order() -> None:
+    correct = Corrections(np.array([2, 7]), np.array([[1.0, 1], [2, 2]]),
+                          np.array([[0.0, 0], [0, 0]]), np.array([0.1, 0.2]), 5, (MOVE, MOVE))
+    border = Corrections(np.array([4]), np.array([[3.0, 3]]), np.array([[9.0, 9]]),
+                         np.array([0.3]), 4, (BORDER_MOVE,))
+    both = correct + border
+    assert both.vertices.tolist() == [2, 4, 7] and both.tested == 9
+    assert both.moves == (MOVE, BORDER_MOVE, MOVE)
+    assert [r["move"] for r in both.to_list()] == [MOVE, BORDER_MOVE, MOVE]
+    assert both.to_list()[1] == {"vertex": 4, "from": [9.0, 9.0], "to": [3.0, 3.0],
+                                 "gain": 0.3, "move": BORDER_MOVE}
+    assert (correct + Corrections.none()).to_list() == correct.to_list()
 
 
 @pytest.mark.skipif("middlebury2003_teddy" not in middlebury.available_middlebury(),
