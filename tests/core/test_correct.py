@@ -2,6 +2,7 @@
 one stays; an extrapolated border vertex is searched for along its epipolar line, within the
 segment its extrapolations span."""
 
+import cv2
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -226,6 +227,37 @@ def test_both_moves_records_join_in_vertex_order() -> None:
     assert both.to_list()[1] == {"vertex": 4, "from": [9.0, 9.0], "to": [3.0, 3.0],
                                  "gain": 0.3, "move": BORDER_MOVE}
     assert (correct + Corrections.none()).to_list() == correct.to_list()
+
+
+def test_border_moves_are_recorded_like_the_mesh_they_leave() -> None:
+    # A stereo-like pair: rows shift 6 px, a band above the bottom 14 px, the last 14 rows 6
+    # px again (unmatched: the border's extrapolations disagree there).
+    h, w, strip = 240, 320, 14
+    moving = texture((h, w + 60), seed=3)[:, 20:20 + w].copy()
+    rows = np.arange(h)
+    shift = np.where((rows >= int(0.7 * h)) & (rows < h - strip), 14.0, 6.0).astype(np.float32)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    reference = cv2.remap(moving, xs + shift[:, None], ys, cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REFLECT)
+    result = register(reference, moving, options={"extent": "frame"})
+    moved = result.corrections
+    assert moved is not None
+    border = np.array(moved.moves) == BORDER_MOVE
+    assert border.any()
+    assert result.extrapolated[moved.vertices[border]].all()
+    mesh, convergence = mesh_document(result), convergence_document(result)
+    assert mesh["corrections"] == convergence["corrections"] == moved.to_list()
+    for record in mesh["corrections"]:
+        np.testing.assert_allclose(record["to"], mesh["moving_vertices"][record["vertex"]],
+                                   atol=0.01)
+    counts = {m["move"]: m["count"] for m in mesh["moves"]}
+    assert counts[BORDER_MOVE] == int(border.sum())
+    # Each moved border vertex lies on the epipolar line of its reference position.
+    F = result.points.epipolar.matrix
+    for v in moved.vertices[border]:
+        line = F @ np.r_[result.reference_vertices[v], 1.0]
+        distance = abs(np.r_[result.moving_vertices[v], 1.0] @ line) / np.hypot(*line[:2])
+        assert distance < 0.01
 
 
 @pytest.mark.skipif("middlebury2003_teddy" not in middlebury.available_middlebury(),
