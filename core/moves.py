@@ -177,8 +177,9 @@ MOVES: dict[str, Move] = {
     BORDER_MOVE: Move(
         "vertex",
         "an extrapolated vertex on the frame's border moved along its epipolar line, within "
-        "the segment its extrapolations (the nearest pairs' local affine map, the pairs' "
-        f"homography) span, extended by its length and {BORDER_MARGIN:g} px at both ends, "
+        "the segment its position and its extrapolations (the nearest pairs' local affine "
+        f"map, the pairs' homography) span, extended by its length and {BORDER_MARGIN:g} px "
+        "at both ends, "
         "when that raised the consistency of its triangles as the correct move must (the "
         "images scored at the verdict's scale); no two neighbours move in one pass (a surface "
         "that shows only along the border, such as a floor nearer than the pairs above it, "
