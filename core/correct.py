@@ -28,9 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 
+from pwlreg.core.epipolar import epipolar_lines, line_direction, line_foot, on_level
 from pwlreg.core.optimize import COSTS, gain_thresholds
 from pwlreg.core.raster import orientation
-from pwlreg.core.similarity import ScoringImages, triangle_statistics
+from pwlreg.core.similarity import ScoringImages, from_level, to_level, triangle_statistics
 
 #: A vertex is tested when its displacement and a neighbour's differ by more than this (px).
 #: At 1 px it tested 664 of the real facade's 1190 vertices (285 at 2 px; 39 ms against 23) for
@@ -358,31 +359,21 @@ def border_search(
         last (pixels of the full images), its gains summed.
     """
     none = Corrections.none()
-
-    def level(p: np.ndarray) -> np.ndarray:
-        return (np.asarray(p, dtype=np.float64) + 0.5) * scale - 0.5
-
-    ref_v, mov_v = level(reference_vertices), level(moving_vertices)
+    ref_v, mov_v = to_level(reference_vertices, scale), to_level(moving_vertices, scale)
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     n = len(ref_v)
     idx = np.flatnonzero(border)
     if not len(idx) or not len(tris):
         return none
-    # F on the level: x_full = (x_level + 0.5) / scale - 0.5.
-    to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
-                        [0, 0, 1]])
-    line = np.column_stack([ref_v[idx], np.ones(len(idx))]) @ (
-        to_full.T @ np.asarray(fundamental) @ to_full).T
-    norm = np.hypot(line[:, 0], line[:, 1])
-    ok = norm > 0
-    idx, line = idx[ok], line[ok] / norm[ok, None]
+    line = epipolar_lines(on_level(fundamental, scale), ref_v[idx])
+    ok = np.isfinite(line).all(axis=1)
+    idx, line = idx[ok], line[ok]
     if not len(idx):
         return none
-    direction = np.column_stack([-line[:, 1], line[:, 0]])
+    direction = line_direction(line)
     # Positions on each line: origin + t * direction, the origin the foot of the vertex.
-    origin = mov_v[idx] - (np.einsum("ij,ij->i", line[:, :2], mov_v[idx]) + line[:, 2])[:, None] \
-        * line[:, :2]
-    along = np.einsum("ckj,kj->ck", level(extrapolated)[:, ok] - origin, direction)
+    origin = line_foot(line, mov_v[idx])
+    along = np.einsum("ckj,kj->ck", to_level(extrapolated, scale)[:, ok] - origin, direction)
     low = np.minimum(np.nanmin(along, axis=0), 0.0)
     high = np.maximum(np.nanmax(along, axis=0), 0.0)
     extend = (high - low) + BORDER_MARGIN * scale
@@ -447,11 +438,8 @@ def border_search(
             again[b[around[m]:around[m + 1]]] = True
         searched = np.flatnonzero(again[idx])
     moved = np.flatnonzero(np.any(mov_v != before, axis=1))
-
-    def full(p: np.ndarray) -> np.ndarray:
-        return (p + 0.5) / scale - 0.5
-
-    return Corrections(moved, full(mov_v[moved]), full(before[moved]), gains[moved],
+    return Corrections(moved, from_level(mov_v[moved], scale), from_level(before[moved], scale),
+                       gains[moved],
                        int(tested.sum()), (BORDER_MOVE,) * len(moved))
 
 

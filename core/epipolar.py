@@ -132,6 +132,33 @@ def sampson_distance(F: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndar
 # --- affine model ---------------------------------------------------------------------------------
 
 
+
+def epipolar_lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Epipolar lines ``F x`` of ``points`` (N, 2), scaled so that ``(a, b)`` is a unit normal
+    (NaN for a degenerate line)."""
+    line = np.column_stack([points, np.ones(len(points))]) @ np.asarray(F).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return line / np.hypot(line[:, 0], line[:, 1])[:, None]
+
+
+def line_direction(line: np.ndarray) -> np.ndarray:
+    """Unit direction of each line (its normal turned a quarter)."""
+    return np.column_stack([-line[:, 1], line[:, 0]])
+
+
+def line_foot(line: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Orthogonal projection of each point on its line."""
+    distance = np.einsum("ij,ij->i", line[:, :2], points) + line[:, 2]
+    return points - distance[:, None] * line[:, :2]
+
+
+def on_level(F: np.ndarray, scale: float) -> np.ndarray:
+    """``F`` for pixels of images reduced by ``scale`` (a pixel ``p`` there is
+    ``(p + 0.5) / scale - 0.5`` in the full images)."""
+    to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
+                        [0, 0, 1]])
+    return to_full.T @ np.asarray(F) @ to_full
+
 def _stack(ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
     """(N, 4) points ``(x', y', x, y)`` of the joint image space."""
     ref = np.asarray(ref, dtype=np.float64).reshape(-1, 2)

@@ -18,7 +18,13 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from pwlreg.core.reliability import weighted_affine
-from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.similarity import (
+    ScoringImages,
+    from_level,
+    mutual_information,
+    to_level,
+    triangle_statistics,
+)
 
 #: Pairs the local model of a border vertex is fitted to.
 NEIGHBOURS = 12
@@ -143,13 +149,9 @@ def frame_vertices(
     if images is None or len(candidates) == 1:
         return border, candidates[0]
 
-    def level(p: np.ndarray) -> np.ndarray:
-        return (p + 0.5) * scale - 0.5
-
     chosen = choose_by_agreement(
-        images, level(ref), level(mov), level(border), level(candidates)
-    )
-    return border, (chosen + 0.5) / scale - 0.5
+        images, *(to_level(p, scale) for p in (ref, mov, border, candidates)))
+    return border, from_level(chosen, scale)
 
 
 def extrapolations(reference: np.ndarray, moving: np.ndarray, targets: np.ndarray) -> np.ndarray:

@@ -53,6 +53,7 @@ from pwlreg.core.imaging import check_image, to_gray8
 from pwlreg.core.kernels import spaced
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
+from pwlreg.core.similarity import from_level
 
 #: Pairs needed for a mesh (one triangle).
 MIN_MESH_PAIRS = 3
@@ -281,7 +282,7 @@ def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
 
     Returns the level and its scale factor ``s`` (level pixel = ``s`` * full pixel; pyrDown
     keeps (0, 0) at the centre of the top-left pixel up to ``(s - 1) / 2``, corrected by the
-    callers through :func:`_to_level` / :func:`_from_level`).
+    callers through :func:`core.similarity.to_level` / :func:`core.similarity.from_level`).
     """
     scale = 1.0
     while max(gray.shape) > max_side:
@@ -289,15 +290,6 @@ def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
         scale *= 0.5
     return gray, scale
 
-
-def _to_level(points: np.ndarray, scale: float) -> np.ndarray:
-    """Full-resolution pixel coordinates -> pyramid level coordinates (pixel-centre convention)."""
-    return (points + 0.5) * scale - 0.5
-
-
-def _from_level(points: np.ndarray, scale: float) -> np.ndarray:
-    """Pyramid level coordinates -> full-resolution pixel coordinates."""
-    return (points + 0.5) / scale - 0.5
 
 
 def _pad_to(gray: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -393,7 +385,7 @@ def detect_corners(
     )
     if corners is None:
         return np.empty((0, 2))
-    pts = _from_level(corners.reshape(-1, 2).astype(np.float64), scale)
+    pts = from_level(corners.reshape(-1, 2).astype(np.float64), scale)
     h, w = gray.shape
     # cornerSubPix needs the search window inside the image.
     pts = pts[(pts[:, 0] >= 6) & (pts[:, 0] <= w - 7) & (pts[:, 1] >= 6) & (pts[:, 1] <= h - 7)]
@@ -449,8 +441,8 @@ def estimate_global_prior(
     ok &= (fb < 0.5) & inside_image(tracked, b.shape)
     if np.count_nonzero(ok) < min_inliers:
         return None
-    src = _from_level(corners[ok], sa)
-    dst = _from_level(tracked[ok], sb)
+    src = from_level(corners[ok], sa)
+    dst = from_level(tracked[ok], sb)
     return _robust_homography(src, dst, 2.0 / sb, 2000, seed, min_inliers)
 
 
@@ -620,8 +612,8 @@ def match_sift(
     counts["consistent"] = int(np.count_nonzero(mutual))
     pa = np.array([kp.pt for kp in ka], dtype=np.float64).reshape(-1, 2)
     pb = np.array([kp.pt for kp in kb], dtype=np.float64).reshape(-1, 2)
-    ref = _from_level(pa[qi[mutual]], sa)
-    mov = _from_level(pb[ti[mutual]], sb)
+    ref = from_level(pa[qi[mutual]], sa)
+    mov = from_level(pb[ti[mutual]], sb)
     score = 1.0 - d1[mutual] / np.maximum(d2[mutual], 1e-12)
     return Matches(ref, mov, score, "sift", counts, rejected)
 

@@ -345,19 +345,20 @@ def register(
             ~tri_report.extrapolated & (np.array(origins) != "client"),
             witnesses=~tri_report.extrapolated, epsilon=opts.epsilon,
             epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
-        mesh = _moved(mesh, corrections)
         border = tri_report.extrapolated
+        moving_v = mesh.moving.copy()
+        moving_v[corrections.vertices] = corrections.moving
         if conjugate.epipolar is not None and border.any():
             # On the level the verdict and the border's first choice look at.
-            found = border_search(
-                level, mesh.reference, mesh.moving, mesh.triangles, border,
-                extrapolations(mesh.reference[~border], mesh.moving[~border],
+            corrections = corrections + border_search(
+                level, mesh.reference, moving_v, mesh.triangles, border,
+                extrapolations(mesh.reference[~border], moving_v[~border],
                                mesh.reference[border]),
                 conjugate.epipolar.matrix, epsilon=opts.epsilon,
                 epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
-            mesh = _moved(mesh, found)
-            corrections = corrections + found
         if len(corrections.vertices):
+            moving_v[corrections.vertices] = corrections.moving
+            mesh = Mesh(mesh.reference, moving_v, mesh.triangles)
             after = keep_initial(mesh, images, opts, None)
             search = replace(search, final_mi=after.final_mi, final_nmi=after.final_nmi)
     timings["optimization_s"] = time.perf_counter() - t
@@ -414,15 +415,6 @@ def register(
         insertion=insertion,
         corrections=corrections,
     )
-
-
-def _moved(mesh: Mesh, corrections: Corrections) -> Mesh:
-    """The mesh with the vertices ``corrections`` moves at their new positions."""
-    if not len(corrections.vertices):
-        return mesh
-    moving = mesh.moving.copy()
-    moving[corrections.vertices] = corrections.moving
-    return Mesh(mesh.reference, moving, mesh.triangles)
 
 
 def warm_up() -> None:

@@ -36,7 +36,12 @@ import numpy as np
 from pwlreg.core.flow import flow_scale, forward_backward_error, residual_flows
 from pwlreg.core.imaging import to_gray8
 from pwlreg.core.raster import label_image, quantize, triangle_areas
-from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.similarity import (
+    ScoringImages,
+    mutual_information,
+    to_level,
+    triangle_statistics,
+)
 from pwlreg.core.warp import piecewise_map
 
 #: Shift (pixels of the scoring level) of the peak test.
@@ -370,7 +375,7 @@ def assess(
     mov = np.asarray(moving_vertices, dtype=np.float64)
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     extra = np.asarray(extrapolated, dtype=bool)
-    ref_level, mov_level = (ref + 0.5) * scale - 0.5, (mov + 0.5) * scale - 0.5
+    ref_level, mov_level = to_level(ref, scale), to_level(mov, scale)
     scores, _, global_peak = peak_scores(images, ref_level[tris], mov_level[tris])
     measured = ~extra[tris].any(axis=1)
     areas = triangle_areas(ref[tris])

@@ -28,13 +28,25 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pwlreg.core.epipolar import EpipolarModel
+from pwlreg.core.epipolar import (
+    EpipolarModel,
+    epipolar_lines,
+    line_direction,
+    line_foot,
+    on_level,
+)
 from pwlreg.core.flow import residual_flows
 from pwlreg.core.kernels import spaced, strip_correlation
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.reliability import neighbour_outliers, uniqueness
-from pwlreg.core.similarity import ScoringImages, mutual_information, triangle_statistics
+from pwlreg.core.similarity import (
+    ScoringImages,
+    from_level,
+    mutual_information,
+    to_level,
+    triangle_statistics,
+)
 from pwlreg.core.warp import piecewise_map
 
 #: Longer side (pixels) of the level the residual flow is measured on.
@@ -206,20 +218,12 @@ def guide(
     mov_v = np.asarray(moving_vertices, dtype=np.float64)
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     scale = image_levels.scale
-    map_x, map_y, label = piecewise_map(_to_level(ref_v, scale), _to_level(mov_v, scale), tris,
+    map_x, map_y, label = piecewise_map(to_level(ref_v, scale), to_level(mov_v, scale), tris,
                                         image_levels.reference.shape, dtype=np.float32,
                                         outside=-1.0)
     measured = (np.ones(len(ref_v), bool) if extrapolated is None
                 else ~np.asarray(extrapolated, bool))
     return Guide(image_levels, ref_v, mov_v, tris, map_x, map_y, label, measured)
-
-
-def _to_level(points: np.ndarray, scale: float) -> np.ndarray:
-    return (points + 0.5) * scale - 0.5
-
-
-def _from_level(points: np.ndarray, scale: float) -> np.ndarray:
-    return (points + 0.5) / scale - 0.5
 
 
 def _sample(image: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -276,7 +280,7 @@ def guided_pairs(
     points = _corners(mesh.levels, measured)
     if not len(points):
         return empty
-    far, _ = cKDTree(_to_level(ref_v[mesh.measured], scale)).query(points)
+    far, _ = cKDTree(to_level(ref_v[mesh.measured], scale)).query(points)
     lh, lw = ref_l.shape
     cells = np.clip(np.rint(points).astype(np.int64), 0, [lw - 1, lh - 1])
     points = points[(far > spacing * MIN_SPACING) & inside[cells[:, 1], cells[:, 0]]]
@@ -314,8 +318,8 @@ def guided_pairs(
         moving = np.column_stack([_sample(map_x, target), _sample(map_y, target)])
         mapped = moving[:, 0] >= 0  # the corrected point still falls inside the mesh
         size = np.hypot(*shift.T) / scale  # pixels of the reference
-        found.append(_chosen(images, ref_v, mov_v, tris, _from_level(kept, scale),
-                             _from_level(moving, scale), size, mapped, {}, budget=budget,
+        found.append(_chosen(images, ref_v, mov_v, tris, from_level(kept, scale),
+                             from_level(moving, scale), size, mapped, {}, budget=budget,
                              epsilon=epsilon, epsilon_pixels=epsilon_pixels))
         budget -= len(found[-1].reference)
     counts["checked"] = min(start, len(points))
@@ -628,12 +632,9 @@ def epipolar_pairs(
     # The vertices and the pairs found already: new pairs keep away from both.
     ref_v = np.concatenate([mesh.reference_vertices, added[0]])
     mov_v = np.concatenate([mesh.moving_vertices, added[1]])
-    ref_lv, mov_lv = _to_level(ref_v, scale), _to_level(mov_v, scale)
+    ref_lv, mov_lv = to_level(ref_v, scale), to_level(mov_v, scale)
     label = mesh.label
-    # Pixels of the level -> of the image: x = (x_l + 0.5) / scale - 0.5.
-    to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
-                        [0, 0, 1]])
-    F = to_full.T @ model.matrix @ to_full
+    F = on_level(model.matrix, scale)
 
     # The spacing of the mesh the budget allows: a sparse mesh (a wide baseline) gets
     # candidates at the density it may reach, not at its own.
@@ -694,13 +695,13 @@ def epipolar_pairs(
     mh, mw = mov_l.shape
     out_of_view = ~((predicted >= 0) & (predicted <= [mw - 1, mh - 1])).all(axis=1)
     predicted[out_of_view] = np.nan  # not searched
-    line = _lines(F, points)
-    foot = _foot(line, predicted)
+    line = epipolar_lines(F, points)
+    foot = line_foot(line, predicted)
     # The segment: the displacements of the nearest vertices applied at the point.
     _, near = cKDTree(ref_lv).query(points, k=min(EPI_NEIGHBOURS, len(ref_lv)))
     near = near.reshape(len(points), -1)
     shifted = points[:, None, :] + (mov_lv - ref_lv)[near]
-    along = np.einsum("ikj,ij->ik", shifted - foot[:, None, :], _direction(line))
+    along = np.einsum("ikj,ij->ik", shifted - foot[:, None, :], line_direction(line))
     low = np.minimum(along.min(axis=1), -EPI_REACH) - EPI_MARGIN
     high = np.maximum(along.max(axis=1), EPI_REACH) + EPI_MARGIN
     centre = 0.5 * (low + high)
@@ -717,10 +718,10 @@ def epipolar_pairs(
     # Left-right check: the match, searched for along its own epipolar line in the reference
     # near the point, must come back to it.
     idx = np.flatnonzero(peaked)
-    back_line = _lines(F.T, best_xy[idx])
+    back_line = epipolar_lines(F.T, best_xy[idx])
     half = np.full(len(idx), EPI_MARGIN / 2)
     back_xy, _, _, _ = _search_lines(mov_l, ref_l, best_xy[idx], back_line,
-                                     _foot(back_line, points[idx]), -half, half, linear[idx])
+                                     line_foot(back_line, points[idx]), -half, half, linear[idx])
     confirmed = peaked.copy()
     confirmed[idx] = np.hypot(*(back_xy - points[idx]).T) <= LR_PX
     counts["confirmed"] = int(confirmed.sum())
@@ -728,8 +729,8 @@ def epipolar_pairs(
     # translation alone: the same Middlebury frame error, fewer gains on the synthetic scenes).
     best_xy = best_xy + np.einsum("kij,kj->ki", linear, sites - points)
     points = sites
-    reference = _from_level(points, scale)
-    moving = _from_level(best_xy, scale)
+    reference = from_level(points, scale)
+    moving = from_level(best_xy, scale)
     ok = confirmed.copy()
     ok[confirmed] = model.inliers(reference[confirmed], moving[confirmed])
     counts["epipolar"] = int(ok.sum())
@@ -758,24 +759,6 @@ def _predicted(mesh: Guide, points: np.ndarray) -> np.ndarray:
     unmapped = (label[y0, x0] < 0) | (label[y0, x1] < 0) | (label[y1, x0] < 0) | (label[y1, x1] < 0)
     predicted[unmapped] = np.nan
     return predicted
-
-
-def _lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Epipolar lines ``F x`` of ``points``, scaled so that ``(a, b)`` is a unit normal (NaN
-    for a degenerate line)."""
-    line = np.column_stack([points, np.ones(len(points))]) @ F.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return line / np.hypot(line[:, 0], line[:, 1])[:, None]
-
-
-def _direction(line: np.ndarray) -> np.ndarray:
-    return np.column_stack([-line[:, 1], line[:, 0]])
-
-
-def _foot(line: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Orthogonal projection of each point on its line."""
-    distance = np.einsum("ij,ij->i", line[:, :2], points) + line[:, 2]
-    return points - distance[:, None] * line[:, :2]
 
 
 def _search_lines(
@@ -819,7 +802,7 @@ def _search_lines(
     if not len(idx):
         return best_xy, best_score, rival, sharpness
     pts = points[idx]
-    normal, direction = line[idx, :2], _direction(line[idx])
+    normal, direction = line[idx, :2], line_direction(line[idx])
     first = np.floor(low[idx])
     lengths = (np.ceil(high[idx]) - first + 1).astype(np.int64)
     # Along the whole segment, on the line, with every other pixel of the patch; then the full

@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.kernels import template_peaks
+from pwlreg.core.similarity import to_level
 
 #: A pair is ambiguous when its second correlation peak reaches this share of the best one.
 AMBIGUITY_RATIO = 0.97
@@ -198,7 +199,7 @@ def uniqueness(
         # A pair already rejected on a finer scale costs no more correlations.
         alive = ~(disagree | (ratio >= AMBIGUITY_RATIO))
         best_s, ratio_s, dist_s, flat_s = _check_scale(
-            a, b, (ref_pts + 0.5) * scale - 0.5, (pred + 0.5) * scale - 0.5, template, radius,
+            a, b, to_level(ref_pts, scale), to_level(pred, scale), template, radius,
             alive,
         )
         done = np.isfinite(best_s)

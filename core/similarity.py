@@ -135,6 +135,16 @@ def reduced(
     return prepare_images(ref, mov, bins), scale
 
 
+def to_level(points: np.ndarray, scale: float) -> np.ndarray:
+    """Pixels of the full images -> of images reduced by ``scale`` (:func:`reduced`)."""
+    return (np.asarray(points, dtype=np.float64) + 0.5) * scale - 0.5
+
+
+def from_level(points: np.ndarray, scale: float) -> np.ndarray:
+    """Pixels of images reduced by ``scale`` -> of the full images."""
+    return (np.asarray(points, dtype=np.float64) + 0.5) / scale - 0.5
+
+
 def smoothed(images: ScoringImages, sigma: float) -> ScoringImages:
     """Both images blurred by a Gaussian of ``sigma`` pixels, prepared again for scoring."""
     ref = images.reference_values.reshape(images.shape)
