@@ -74,6 +74,9 @@ class SearchResult:
         Why the search ended.
     evaluations : int
         Number of candidate swaps scored.
+    histogram : ndarray of int64, shape (M * M,), or None
+        Joint histogram of the final mesh on the scoring images, from which ``final_mi`` was
+        computed; None when the optimizer does not keep it.
     """
 
     initial_mi: float
@@ -83,6 +86,7 @@ class SearchResult:
     steps: list[SwapStep] = field(default_factory=list)
     stopped_because: str = ""
     evaluations: int = 0
+    histogram: np.ndarray | None = field(default=None, repr=False)
 
 
 def _triple(t: Iterable[int]) -> Triple:
@@ -681,5 +685,6 @@ def greedy_search(
                                          mi=mi_n, nmi=nmi_n, elapsed_s=elapsed, move=move))
     result.final_mi, result.final_nmi = (
         float(v) for v in mutual_information(global_hist, images.bins))
+    result.histogram = global_hist
     result.stopped_because = stopped
     return result

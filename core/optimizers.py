@@ -12,6 +12,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from pwlreg.core.baselines import morris_kanade_search, nakatuji_search
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.optimize import ProgressFn, SearchResult, greedy_search
@@ -25,16 +27,45 @@ Optimizer = Callable[
 ]
 
 
+def _information(mesh: Mesh, images: ScoringImages) -> tuple[float, float, np.ndarray]:
+    """Global MI (bits), NMI and joint histogram of ``mesh`` (one pass over its pixels)."""
+    tris = mesh.triangles
+    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
+    total = hist.sum(axis=0)
+    mi, nmi = (float(v) for v in mutual_information(total, images.bins))
+    return mi, nmi, total
+
+
 def keep_initial(
     mesh: Mesh, images: ScoringImages, options: RegistrationOptions, progress: ProgressFn | None
 ) -> SearchResult:
     """No optimization: the initial mesh, with its global MI (bits) and NMI."""
-    tris = mesh.triangles
-    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
-    mi, nmi = (float(v) for v in mutual_information(hist.sum(axis=0), images.bins))
-    return SearchResult(
-        initial_mi=mi, initial_nmi=nmi, final_mi=mi, final_nmi=nmi, stopped_because="optimizer none"
-    )
+    mi, nmi, hist = _information(mesh, images)
+    return SearchResult(initial_mi=mi, initial_nmi=nmi, final_mi=mi, final_nmi=nmi,
+                        stopped_because="optimizer none", histogram=hist)
+
+
+def after_vertex_moves(
+    search: SearchResult, images: ScoringImages, before: Mesh, after: Mesh, vertices: np.ndarray
+) -> SearchResult:
+    """``search`` with the final MI and NMI of ``after``, the mesh ``before`` (the one the search
+    ended on) with the moving positions of ``vertices`` changed.
+
+    The triangles partition the pixels, so the joint histogram of ``after`` is the search's
+    less the histograms of the triangles around ``vertices`` on ``before`` plus theirs on
+    ``after``: the same integers as a pass over the whole mesh, at the cost of those
+    triangles alone. Without the search's histogram, the whole mesh is scored.
+    """
+    if search.histogram is None:
+        mi, nmi, hist = _information(after, images)
+        return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
+    tris = after.triangles
+    around = tris[np.isin(tris, vertices).any(axis=1)]
+    old, _ = triangle_statistics(images, before.reference[around], before.moving[around])
+    new, _ = triangle_statistics(images, after.reference[around], after.moving[around])
+    hist = search.histogram + new.sum(axis=0) - old.sum(axis=0)
+    mi, nmi = (float(v) for v in mutual_information(hist, images.bins))
+    return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
 
 
 def greedy(

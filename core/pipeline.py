@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -21,7 +21,7 @@ from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.moves import MOVES, Search, inserted_mask, insertions
 from pwlreg.core.optimize import SearchResult
-from pwlreg.core.optimizers import OPTIMIZERS, keep_initial
+from pwlreg.core.optimizers import OPTIMIZERS, after_vertex_moves
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
@@ -358,9 +358,9 @@ def register(
                 epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
         if len(corrections.vertices):
             moving_v[corrections.vertices] = corrections.moving
-            mesh = Mesh(mesh.reference, moving_v, mesh.triangles)
-            after = keep_initial(mesh, images, opts, None)
-            search = replace(search, final_mi=after.final_mi, final_nmi=after.final_nmi)
+            moved = Mesh(mesh.reference, moving_v, mesh.triangles)
+            search = after_vertex_moves(search, images, mesh, moved, corrections.vertices)
+            mesh = moved
     timings["optimization_s"] = time.perf_counter() - t
     report("optimizing", 1.0)
 

@@ -1,3 +1,5 @@
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -5,6 +7,7 @@ from scipy.spatial import Delaunay
 
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.optimize import QuadScorer, TriangleCache, greedy_search
+from pwlreg.core.optimizers import after_vertex_moves, keep_initial
 from pwlreg.core.raster import quantize
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
@@ -295,3 +298,24 @@ def test_pair_moves_agree_with_the_loops(seed):
     assert pair_moves(mesh, None, banned, near=set()).shape == (0, 9)
     # Something retired: fewer pairs than without.
     assert len(pair_moves(mesh, edges, set())) > len(pairs)
+
+
+def test_the_mi_after_vertex_moves_is_that_of_a_whole_pass():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    mesh, _ = initial_mesh(rp, mp, 25)
+    images = prepare_images(ref, mov, 16)
+    search = greedy_search(mesh, images)
+    vertices = np.array([3, 7, 11])
+    moving = mesh.moving.copy()
+    moving[vertices] += [[1.5, -0.75], [-2.0, 0.5], [0.25, 1.0]]
+    moved = Mesh(mesh.reference, moving, mesh.triangles)
+    whole = keep_initial(moved, images, None, None)
+    updated = after_vertex_moves(search, images, mesh, moved, vertices)
+    np.testing.assert_array_equal(updated.histogram, whole.histogram)
+    assert (updated.final_mi, updated.final_nmi) == (whole.final_mi, whole.final_nmi)
+    assert updated.final_mi != search.final_mi
+    assert (updated.initial_mi, updated.steps) == (search.initial_mi, search.steps)
+    # An optimizer that keeps no histogram: the whole mesh is scored.
+    blind = after_vertex_moves(replace(search, histogram=None), images, mesh, moved, vertices)
+    assert (blind.final_mi, blind.final_nmi) == (whole.final_mi, whole.final_nmi)
