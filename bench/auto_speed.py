@@ -3,19 +3,22 @@
 
 Times ``register(reference, moving)`` with default options (automatic matching, guided
 insertion, ``extent="frame"``) on the 1024x768 synthetic city of :func:`bench.trust.speed_section`
-and, when the real data is there, the 1024x682 facade pair. Each tree runs in a fresh process
-(kernels warmed up first) that reports the best of ``--repeat`` registrations per pair; the two
-trees alternate ``--rounds`` times, so a drift of the shared machine's speed hits both. The old
-tree is a ``git worktree`` of ``--rev`` in a temporary directory, imported through a package
-shim (``pwlreg/`` with its ``core`` and ``service`` linked in), because the editable install
-maps ``pwlreg`` to this checkout. Both trees register the same images, written once by this
-one. The default revision is the code at the filing of issue #10, whose bound is 2 x.
+and, when the real data is there, the 1024x682 facade pair. Each tree runs in a process of its
+own (kernels warmed up and each pair registered once first), and the two processes take turns
+registration by registration (which goes first alternates), so that the ratio of each
+adjacent pair of registrations sees the same state of the shared machine: its speed drifts by
+20-30 % over seconds, which blocks of whole runs took as a difference between the trees. The
+report gives, per pair, the median of those ratios and their spread, and the ratio of the two
+trees' best times. The old tree is a ``git worktree`` of ``--rev`` in a temporary directory,
+imported through a package shim (``pwlreg/`` with its ``core`` and ``service`` linked in),
+because the editable install maps ``pwlreg`` to this checkout. Both trees register the same
+images, written once by this one. The default revision is the code at the filing of issue
+#10, whose bound is 2 x.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import subprocess
 import sys
@@ -29,23 +32,24 @@ from bench.scenes import make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
-#: Run in each tree's process: best time per pair, as JSON on the last line.
+#: Run in each tree's process: loads the pairs, warms up, then registers the pair whose index
+#: it reads on each line of its input and answers with the seconds it took.
 CHILD = """
-import json, sys, time
+import sys, time
 import numpy as np
 from pwlreg import register
 from pwlreg.core.pipeline import warm_up
 warm_up()
-best = {}
-for path in sys.argv[2:]:
-    data = np.load(path)
-    times = []
-    for _ in range(int(sys.argv[1])):
-        t = time.perf_counter()
-        register(data["reference"], data["moving"])
-        times.append(time.perf_counter() - t)
-    best[path] = min(times)
-print(json.dumps(best))
+pairs = [np.load(path) for path in sys.argv[1:]]
+pairs = [(p["reference"], p["moving"]) for p in pairs]
+for ref, mov in pairs:
+    register(ref, mov)
+print("ready", flush=True)
+for line in sys.stdin:
+    ref, mov = pairs[int(line)]
+    t = time.perf_counter()
+    register(ref, mov)
+    print(time.perf_counter() - t, flush=True)
 """
 
 
@@ -74,14 +78,25 @@ def _shim(tree: Path, work: Path, label: str) -> Path:
     return shim
 
 
-def _run(shim: Path, paths: dict[str, Path], repeat: int) -> dict[str, float]:
-    out = subprocess.run(
-        [sys.executable, "-c", CHILD, str(repeat), *map(str, paths.values())],
-        cwd=shim, env={"PYTHONPATH": str(shim), "PATH": "/usr/bin:/bin"},
-        capture_output=True, text=True, check=True, timeout=1800,
-    )
-    best = json.loads(out.stdout.strip().splitlines()[-1])
-    return {name: best[str(path)] for name, path in paths.items()}
+class _Tree:
+    """A child process of one tree that registers a pair when asked."""
+
+    def __init__(self, shim: Path, paths: list[Path]) -> None:
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", CHILD, *map(str, paths)], cwd=shim,
+            env={"PYTHONPATH": str(shim), "PATH": "/usr/bin:/bin"},
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        if self.process.stdout.readline().strip() != "ready":
+            raise RuntimeError(f"the tree in {shim} did not start")
+
+    def time(self, pair: int) -> float:
+        self.process.stdin.write(f"{pair}\n")
+        self.process.stdin.flush()
+        return float(self.process.stdout.readline())
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait(timeout=60)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,19 +113,36 @@ def main(argv: list[str] | None = None) -> int:
                         args.rev], check=True, capture_output=True)
         try:
             paths = _pairs(work)
-            shims = {"new": _shim(ROOT, work, "new"), "old": _shim(old, work, "old")}
-            ratios: dict[str, list[float]] = {name: [] for name in paths}
-            print(f"register() best of {args.repeat}, seconds: this tree against {args.rev}")
-            for r in range(args.rounds):
-                times = {label: _run(shim, paths, args.repeat) for label, shim in shims.items()}
-                for name in paths:
-                    new, old_s = times["new"][name], times["old"][name]
-                    ratios[name].append(new / old_s)
-                    print(f"  round {r + 1}  {name:28s} {new:.3f} against {old_s:.3f}  "
-                          f"{new / old_s:.2f} x", flush=True)
+            names = list(paths)
+            trees = {"new": _Tree(_shim(ROOT, work, "new"), list(paths.values())),
+                     "old": _Tree(_shim(old, work, "old"), list(paths.values()))}
+            times = {(name, label): [] for name in names for label in trees}
+            ratios: dict[str, list[float]] = {name: [] for name in names}
+            print(f"register(), {args.rounds} x {args.repeat} turns per pair, seconds: this "
+                  f"tree against {args.rev}")
+            try:
+                for r in range(args.rounds):
+                    for k, name in enumerate(names):
+                        for j in range(args.repeat):
+                            order = ("new", "old") if (r + j) % 2 == 0 else ("old", "new")
+                            took = {label: trees[label].time(k) for label in order}
+                            for label, t in took.items():
+                                times[(name, label)].append(t)
+                            ratios[name].append(took["new"] / took["old"])
+                        print(f"  round {r + 1}  {name:28s} median "
+                              f"{np.median(times[(name, 'new')][-args.repeat:]):.3f} against "
+                              f"{np.median(times[(name, 'old')][-args.repeat:]):.3f}  "
+                              f"{np.median(ratios[name][-args.repeat:]):.2f} x", flush=True)
+            finally:
+                for tree in trees.values():
+                    tree.close()
             for name, values in ratios.items():
-                print(f"{name:28s} ratio {min(values):.2f}-{max(values):.2f} x, median "
-                      f"{np.median(values):.2f} x")
+                best = min(times[(name, "new")]) / min(times[(name, "old")])
+                q1, q3 = np.percentile(values, [25, 75])
+                print(f"{name:28s} ratio median {np.median(values):.2f} x (quartiles "
+                      f"{q1:.2f}-{q3:.2f}, {len(values)} turns), best times "
+                      f"{min(times[(name, 'new')]):.3f} / {min(times[(name, 'old')]):.3f} s: "
+                      f"{best:.2f} x")
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)],
                            check=False, capture_output=True)
