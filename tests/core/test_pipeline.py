@@ -102,14 +102,19 @@ def test_optimizer_none_keeps_delaunay():
 def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
     # In a fresh process, as a worker calls it: afterwards no kernel of either path is left to
     # compile (or to load from numba's cache) in the first job.
+    # The process's long-lived objects are then out of the collector's reach.
     code = (
+        "import gc\n"
         "from pwlreg.core import kernels\n"
         "from pwlreg.core.pipeline import warm_up\n"
         "warm_up()\n"
         "names = ['strip_correlation', 'template_peaks', 'spaced', 'triangle_histograms',\n"
         "         'triangle_histograms_parallel', 'fill_spans', 'warp']\n"
         "print(' '.join(n for n in names if not getattr(kernels, n).signatures))\n"
+        "print(gc.get_freeze_count())\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=600, check=True)
-    assert out.stdout.strip() == "", f"not compiled by warm_up: {out.stdout}"
+    missing, frozen = out.stdout.split("\n")[:2]
+    assert missing.strip() == "", f"not compiled by warm_up: {missing}"
+    assert int(frozen) > 10_000
