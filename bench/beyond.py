@@ -21,7 +21,12 @@ import numpy as np
 
 from bench import middlebury, quality, trust
 from bench.ceiling import ceiling_search, realised_share
-from bench.metrics import disparity_steps, endpoint_error, error_by_triangle
+from bench.metrics import (
+    disparity_steps,
+    endpoint_error,
+    endpoint_error_map,
+    error_by_triangle,
+)
 from bench.quality import Case, CaseData, build_cases
 from pwlreg.core.errors import InputError
 from pwlreg.core.pipeline import register, warm_up
@@ -84,6 +89,14 @@ def run(cases, configs: dict[str, dict], automatic: bool = False) -> list[dict]:
             row["epe"]["ceiling"] = endpoint_error(
                 base.reference_vertices, base.moving_vertices, ceiling, data.truth_x,
                 data.truth_y, data.valid)["mean"]
+            if automatic:
+                # A dense optical flow over the pixels the last configuration's mesh covers.
+                covered = np.isfinite(endpoint_error_map(
+                    r.reference_vertices, r.moving_vertices, r.final_triangles, data.truth_x,
+                    data.truth_y, data.valid))
+                fx, fy = dense_flow(data.reference, data.moving)
+                row["epe"]["DIS"] = float(np.mean(np.hypot(fx - data.truth_x,
+                                                           fy - data.truth_y)[covered]))
         if "ceiling" not in row["epe"]:
             continue
         row["case_s"] = time.perf_counter() - t0
@@ -119,6 +132,25 @@ def summary(rows: list[dict], configs: dict[str, dict]) -> None:
                   f"{100 * np.mean(reductions):5.1f} % median {100 * np.median(reductions):5.1f} %"
                   f"  worse {worse} ({len(much)})  {t:.2f} s" + (f"  > 2 % worse: {', '.join(much)}"
                                                                 if much else ""))
+        if all("DIS" in r["epe"] for r in group):
+            _dense_flow_summary(group, list(configs)[-1])
+
+
+def _dense_flow_summary(group: list[dict], label: str) -> None:
+    """DIS against ``label`` over the pixels its meshes cover, narrow and wide baselines
+    apart: where a raw dense flow stands against the mesh."""
+    print(f"  DIS (OpenCV, medium preset) over the pixels the {label!r} meshes cover, median / "
+          f"mean EPE px, DIS against {label!r}:")
+    wide = {"wide baseline": [r for r in group if "bas22" in r["name"]],
+            "narrow baseline": [r for r in group if "bas22" not in r["name"]]}
+    for part, rows in {"all": group, **wide}.items():
+        if not rows:
+            continue
+        dis = np.array([r["epe"]["DIS"] for r in rows])
+        mesh = np.array([r["epe"][label] for r in rows])
+        print(f"    {part:16s} {len(rows):3d} cases: {np.median(dis):7.2f} / {np.mean(dis):7.2f} "
+              f"against {np.median(mesh):6.2f} / {np.mean(mesh):6.2f}; DIS lower in "
+              f"{int((dis < mesh).sum())}")
 
 
 def _arosics_best(pair: str, mask: str) -> float | None:

@@ -1,6 +1,9 @@
-"""The Middlebury whole-frame comparison of bench.beyond."""
+"""bench.beyond against the peers: the AROSICS figure it reads and the dense optical flow."""
 
 import json
+
+import cv2
+import numpy as np
 
 from bench import beyond, middlebury
 
@@ -21,3 +24,26 @@ def test_the_peer_figure_is_the_best_run_over_the_mask_asked_for(tmp_path, monke
     assert beyond._arosics_best("venus", "all") == 0.7
     assert beyond._arosics_best("venus", "nonocc") == 0.8
     assert beyond._arosics_best("teddy", "all") is None
+
+
+def test_the_dense_flow_is_compared_over_the_baselines_apart(capsys):
+    rows = [{"name": "city-bas22.0-s0", "epe": {"DIS": 40.0, "default": 4.0}},
+            {"name": "city-bas22.0-s1", "epe": {"DIS": 2.0, "default": 3.0}},
+            {"name": "box-bas12.0-s0", "epe": {"DIS": 1.0, "default": 2.0}}]
+    beyond._dense_flow_summary(rows, "default")
+    lines = {line.split()[0]: " ".join(line.split())
+             for line in capsys.readouterr().out.splitlines()[1:]}
+    assert lines["all"].endswith("3 cases: 2.00 / 14.33 against 3.00 / 3.00; DIS lower in 2")
+    assert lines["wide"].endswith("2 cases: 21.00 / 21.00 against 3.50 / 3.50; DIS lower in 1")
+    assert lines["narrow"].endswith("1 cases: 1.00 / 1.00 against 2.00 / 2.00; DIS lower in 1")
+
+
+def test_a_dense_flow_follows_a_small_shift():
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 1.5)
+    moving = np.roll(texture, 3, axis=1)  # moving(x + 3) = reference(x)
+    fx, fy = beyond.dense_flow(texture, moving)
+    inner = (slice(20, -20), slice(20, -20))
+    xx = np.arange(160)[None, :].repeat(120, axis=0)
+    assert np.median(np.abs(fx - xx - 3)[inner]) < 0.2
+    assert np.median(np.abs(fy - np.arange(120)[:, None])[inner]) < 0.2
