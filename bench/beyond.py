@@ -134,6 +134,28 @@ def summary(rows: list[dict], configs: dict[str, dict]) -> None:
                                                                 if much else ""))
         if all("DIS" in r["epe"] for r in group):
             _dense_flow_summary(group, list(configs)[-1])
+        if title == "synthetic":
+            _condition_summary(group, configs)
+
+
+def _condition_summary(group: list[dict], configs: dict[str, dict]) -> None:
+    """Median share and cases worse than Delaunay per imaging condition of
+    :data:`bench.quality.CONDITIONS` (the issue asks for the non-monotone and noisy ones)."""
+    print("  by condition (camera, radiometric change, sensor noise grey levels, blur px): "
+          "median share / cases worse than Delaunay")
+    for camera, radiometric, noise, blur in quality.CONDITIONS:
+        tag = f"-{camera[:3]}-{radiometric}-"
+        rows = [r for r in group if tag in r["name"]]
+        if not rows:
+            continue
+        cells = []
+        for label in configs:
+            shares = [realised_share(r["epe"]["delaunay"], r["epe"][label], r["epe"]["ceiling"])
+                      for r in rows]
+            worse = sum(r["epe"][label] > r["epe"]["delaunay"] for r in rows)
+            cells.append(f"{label} {np.nanmedian(shares):.2f} / {worse}")
+        print(f"    {camera[:3]} {radiometric:11s} noise {noise:g} blur {blur:g} "
+              f"({len(rows)} cases): " + ", ".join(cells))
 
 
 def _dense_flow_summary(group: list[dict], label: str) -> None:

@@ -47,3 +47,17 @@ def test_a_dense_flow_follows_a_small_shift():
     xx = np.arange(160)[None, :].repeat(120, axis=0)
     assert np.median(np.abs(fx - xx - 3)[inner]) < 0.2
     assert np.median(np.abs(fy - np.arange(120)[:, None])[inner]) < 0.2
+
+
+def test_the_share_is_reported_per_imaging_condition(capsys):
+    def row(name, default):
+        return {"name": name, "epe": {"delaunay": 2.0, "default": default, "ceiling": 1.0}}
+
+    rows = [row("box-per-lighting-s6", 1.5), row("city-per-lighting-s6", 1.0),
+            row("gable-per-lighting-s6", 2.5), row("box-aff-nonmonotone-s4", 1.2)]
+    beyond._condition_summary(rows, {"default": {}})
+    out = [" ".join(line.split()) for line in capsys.readouterr().out.splitlines()]
+    # Shares 0.5, 1.0 and -0.5 (worse than Delaunay): median 0.5, one worse.
+    assert "per lighting noise 4 blur 1 (3 cases): default 0.50 / 1" in out
+    assert "aff nonmonotone noise 2 blur 0 (1 cases): default 0.80 / 0" in out
+    assert len(out) == 3  # the title and the two conditions with cases
