@@ -129,8 +129,7 @@ def sampson_distance(F: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndar
     return np.where(den > 0, d, np.inf)
 
 
-# --- affine model ---------------------------------------------------------------------------------
-
+# --- epipolar lines -------------------------------------------------------------------------------
 
 
 def epipolar_lines(F: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -152,12 +151,23 @@ def line_foot(line: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points - distance[:, None] * line[:, :2]
 
 
+def pixel_scaling(factor: float | np.ndarray) -> np.ndarray:
+    """The homogeneous map ``p -> (p + 0.5) / factor - 0.5``: a pixel's position in the image
+    scaled by ``1 / factor`` (one number, or one per axis ``(fx, fy)``), pixel centres kept as
+    :func:`cv2.resize` and :func:`cv2.pyrDown` keep them."""
+    fx, fy = np.broadcast_to(np.asarray(factor, dtype=np.float64), (2,))
+    return np.array([[1 / fx, 0, 0.5 / fx - 0.5], [0, 1 / fy, 0.5 / fy - 0.5], [0, 0, 1.0]])
+
+
 def on_level(F: np.ndarray, scale: float) -> np.ndarray:
     """``F`` for pixels of images reduced by ``scale`` (a pixel ``p`` there is
     ``(p + 0.5) / scale - 0.5`` in the full images)."""
-    to_full = np.array([[1 / scale, 0, 0.5 / scale - 0.5], [0, 1 / scale, 0.5 / scale - 0.5],
-                        [0, 0, 1]])
+    to_full = pixel_scaling(scale)
     return to_full.T @ np.asarray(F) @ to_full
+
+
+# --- affine model ---------------------------------------------------------------------------------
+
 
 def _stack(ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
     """(N, 4) points ``(x', y', x, y)`` of the joint image space."""

@@ -299,7 +299,6 @@ def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
     return gray, scale
 
 
-
 def _pad_to(gray: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Pad ``gray`` with zeros at the bottom and right to ``shape`` (no-op if it is that big)."""
     dh, dw = shape[0] - gray.shape[0], shape[1] - gray.shape[1]

@@ -351,14 +351,15 @@ def register(
         moving_v[corrections.vertices] = corrections.moving
         if conjugate.epipolar is not None and border.any():
             # On the level the verdict and the border's first choice look at.
-            corrections = corrections + border_search(
+            found = border_search(
                 level, mesh.reference, moving_v, mesh.triangles, border,
                 extrapolations(mesh.reference[~border], moving_v[~border],
                                mesh.reference[border]),
                 conjugate.epipolar.matrix, epsilon=opts.epsilon,
                 epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
+            moving_v[found.vertices] = found.moving
+            corrections = corrections + found
         if len(corrections.vertices):
-            moving_v[corrections.vertices] = corrections.moving
             moved = Mesh(mesh.reference, moving_v, mesh.triangles)
             search = after_vertex_moves(search, images, mesh, moved, corrections.vertices)
             mesh = moved

@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pwlreg.core.epipolar import EpipolarModel
+from pwlreg.core.epipolar import EpipolarModel, pixel_scaling
 from pwlreg.core.imaging import PictureRecipe, matching_picture
 from pwlreg.core.matching import ConjugatePoints
 from pwlreg.core.options import RegistrationOptions
@@ -366,12 +366,8 @@ def _scaled_model(model: EpipolarModel, scale: np.ndarray, mean: float) -> Epipo
     """The epipolar model of the levels for full-resolution pixels (distances scaled by the
     mean factor, exact when both images were reduced alike)."""
 
-    def to_level(s: np.ndarray) -> np.ndarray:
-        # x_level = (x + 0.5) / s - 0.5, homogeneous.
-        return np.array([[1 / s[0], 0, 0.5 / s[0] - 0.5], [0, 1 / s[1], 0.5 / s[1] - 0.5],
-                         [0, 0, 1.0]])
-
-    f = to_level(scale[1]).T @ model.matrix @ to_level(scale[0])
+    # x_level = (x + 0.5) / s - 0.5 in each image.
+    f = pixel_scaling(scale[1]).T @ model.matrix @ pixel_scaling(scale[0])
     if model.kind == "affine":
         f = f / np.sqrt(f[2, 0] ** 2 + f[2, 1] ** 2 + f[0, 2] ** 2 + f[1, 2] ** 2)
     else:
