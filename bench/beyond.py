@@ -269,7 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--automatic", action="store_true",
                         help="synthetic cases without points (the automatic matcher)")
     parser.add_argument("--seeds", help="with --automatic: comma-separated scene seeds "
-                        "(default 0,1, the scenes the insertion was developed on)")
+                        "(default 0,1, the scenes the insertion was developed on); else "
+                        "comma-separated draws of the synthetic scenes with points (default 0, "
+                        "the suite's own; see bench.quality.build_cases)")
     args = parser.parse_args(argv)
     configs = CONFIGS if not args.configs else {k: CONFIGS[k] for k in args.configs.split(",")}
     kinds = set(args.kinds.split(","))
@@ -283,7 +285,8 @@ def main(argv: list[str] | None = None) -> int:
         cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick, seeds=seeds)
                  if c.group not in ("unrelated", "partial overlap")]
     else:
-        cases = [c for c in build_cases(quick=args.quick) if c.kind in kinds]
+        draws = tuple(int(v) for v in args.seeds.split(",")) if args.seeds else (0,)
+        cases = [c for c in build_cases(quick=args.quick, draws=draws) if c.kind in kinds]
     rows = run(cases, configs, automatic=args.automatic)
     summary(rows, configs)
     return 0

@@ -272,16 +272,21 @@ def _oxford(pair_name: str) -> Case:
     return Case(f"{short}-auto", "oxford", short, {"pair": pair_name, "points": "auto"}, load)
 
 
-def build_cases(quick: bool = False) -> list[Case]:
-    """The case list: the full suite, or one case per family and real-data kind (``quick``)."""
+def build_cases(quick: bool = False, *, draws: tuple[int, ...] = (0,)) -> list[Case]:
+    """The case list: the full suite, or one case per family and real-data kind (``quick``).
+
+    ``draws`` repeats the synthetic scenes with other seeds: draw ``d`` renders condition ``c``
+    with seed ``c + 1 + d * len(CONDITIONS)`` (draw 0 is the suite's own scenes).
+    """
     cases: list[Case] = []
-    for f, family in enumerate(POLYHEDRAL):
-        conditions = [f % len(CONDITIONS)] if quick else range(len(CONDITIONS))
-        for c in conditions:
-            cases.append(_synthetic(family, seed=c + 1, condition=c))
-    if not quick:
-        for c in PLANE_CONDITIONS:
-            cases.append(_synthetic("plane", seed=c + 1, condition=c))
+    for d in draws:
+        for f, family in enumerate(POLYHEDRAL):
+            conditions = [f % len(CONDITIONS)] if quick else range(len(CONDITIONS))
+            for c in conditions:
+                cases.append(_synthetic(family, seed=c + 1 + d * len(CONDITIONS), condition=c))
+        if not quick:
+            for c in PLANE_CONDITIONS:
+                cases.append(_synthetic("plane", seed=c + 1 + d * len(CONDITIONS), condition=c))
     available = middlebury.available_middlebury()
     pairs = available[:1] if quick else available
     for name in pairs:

@@ -40,3 +40,16 @@ def test_disparity_correctness_on_a_step():
     # Internal edges: (1, 2) on the left plane, (1, 3) on the step's left side, (3, 4) across.
     assert r["internal_edges"] == 3
     assert r["incompatible_internal"] == 1
+
+
+def test_draws_repeat_the_synthetic_scenes_with_other_seeds():
+    own = [c for c in quality.build_cases() if c.kind == "synthetic"]
+    both = [c for c in quality.build_cases(draws=(0, 2)) if c.kind == "synthetic"]
+    assert [c.name for c in both[:len(own)]] == [c.name for c in own]
+    again = both[len(own):]
+    assert len(again) == len(own)
+    step = 2 * len(quality.CONDITIONS)
+    for a, b in zip(own, again, strict=True):
+        assert b.name == a.name.replace(f"-s{a.params['seed']}", f"-s{a.params['seed'] + step}")
+        assert {k: v for k, v in b.params.items() if k != "seed"} == {
+            k: v for k, v in a.params.items() if k != "seed"}
