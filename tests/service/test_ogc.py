@@ -26,7 +26,6 @@ import numpy as np
 import pytest
 import yaml
 from fastapi import Response
-from fastapi.testclient import TestClient
 from jsonschema import Draft4Validator
 from owslib.ogcapi.processes import Processes
 from referencing import Registry, Resource
@@ -755,9 +754,16 @@ def test_html_landing_page_without_a_viewer_is_the_api_documentation(tmp_path: P
     # The app's hook decides the HTML answer of /; without one it is a redirect to /docs.
     app = create_app(Settings(data_dir=tmp_path, _env_file=None))  # type: ignore[call-arg]
     app.state.html_landing = lambda request: Response("<p>viewer</p>", media_type="text/html")
-    client = TestClient(app)  # the lifespan is not run: the HTML answer needs no services
-    page = client.get("/", headers={"Accept": "text/html"}, follow_redirects=False)
+
+
+    async def get(url: str, **kwargs: Any) -> httpx.Response:
+        # httpx's ASGI transport does not run the lifespan: the HTML answer needs no services.
+        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
+                                     base_url="http://pwlreg.test") as client:
+            return await client.get(url, follow_redirects=False, **kwargs)
+
+    page = asyncio.run(get("/", headers={"Accept": "text/html"}))
     assert page.text == "<p>viewer</p>" and page.headers["vary"] == "Accept"
     del app.state.html_landing
-    page = client.get("/?f=html", follow_redirects=False)
+    page = asyncio.run(get("/?f=html"))
     assert page.status_code == 303 and page.headers["location"] == "/docs"
