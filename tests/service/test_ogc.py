@@ -755,7 +755,6 @@ def test_html_landing_page_without_a_viewer_is_the_api_documentation(tmp_path: P
     app = create_app(Settings(data_dir=tmp_path, _env_file=None))  # type: ignore[call-arg]
     app.state.html_landing = lambda request: Response("<p>viewer</p>", media_type="text/html")
 
-
     async def get(url: str, **kwargs: Any) -> httpx.Response:
         # httpx's ASGI transport does not run the lifespan: the HTML answer needs no services.
         async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app),
