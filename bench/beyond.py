@@ -65,7 +65,8 @@ def run(cases, configs: dict[str, dict], automatic: bool = False) -> list[dict]:
         t0 = time.perf_counter()
         data = case.load()
         kind = f"{case.kind} auto" if automatic else case.kind
-        row = {"name": case.name, "kind": kind, "epe": {}, "time": {}}
+        row = {"name": case.name, "kind": kind, "group": case.group, "params": case.params,
+               "epe": {}, "time": {}}
         base = None
         # Delaunay over the pairs as matched (or given): no insertion, no swaps.
         plain = {"optimizer": "none", "insert_vertices": "never"}
@@ -144,8 +145,9 @@ def _condition_summary(group: list[dict], configs: dict[str, dict]) -> None:
     print("  by condition (camera, radiometric change, sensor noise grey levels, blur px): "
           "median share / cases worse than Delaunay")
     for camera, radiometric, noise, blur in quality.CONDITIONS:
-        tag = f"-{camera[:3]}-{radiometric}-"
-        rows = [r for r in group if tag in r["name"]]
+        condition = {"camera": camera, "radiometric": radiometric, "noise": noise, "blur": blur}
+        rows = [r for r in group
+                if all(r["params"].get(k) == v for k, v in condition.items())]
         if not rows:
             continue
         cells = []
@@ -163,8 +165,9 @@ def _dense_flow_summary(group: list[dict], label: str) -> None:
     apart: where a raw dense flow stands against the mesh."""
     print(f"  DIS (OpenCV, medium preset) over the pixels the {label!r} meshes cover, median / "
           f"mean EPE px, DIS against {label!r}:")
-    wide = {"wide baseline": [r for r in group if "bas22" in r["name"]],
-            "narrow baseline": [r for r in group if "bas22" not in r["name"]]}
+    # The trust suite's wide-baseline scenes are a group of their own.
+    wide = {"wide baseline": [r for r in group if "wide" in r["group"]],
+            "narrow baseline": [r for r in group if "wide" not in r["group"]]}
     for part, rows in {"all": group, **wide}.items():
         if not rows:
             continue

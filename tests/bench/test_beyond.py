@@ -5,7 +5,7 @@ import json
 import cv2
 import numpy as np
 
-from bench import beyond, middlebury
+from bench import beyond, middlebury, quality
 
 
 def _run(all_mean: float, nonocc_mean: float | None) -> dict:
@@ -27,9 +27,9 @@ def test_the_peer_figure_is_the_best_run_over_the_mask_asked_for(tmp_path, monke
 
 
 def test_the_dense_flow_is_compared_over_the_baselines_apart(capsys):
-    rows = [{"name": "city-bas22.0-s0", "epe": {"DIS": 40.0, "default": 4.0}},
-            {"name": "city-bas22.0-s1", "epe": {"DIS": 2.0, "default": 3.0}},
-            {"name": "box-bas12.0-s0", "epe": {"DIS": 1.0, "default": 2.0}}]
+    rows = [{"group": "polyhedral, wide", "epe": {"DIS": 40.0, "default": 4.0}},
+            {"group": "polyhedral, wide", "epe": {"DIS": 2.0, "default": 3.0}},
+            {"group": "polyhedral", "epe": {"DIS": 1.0, "default": 2.0}}]
     beyond._dense_flow_summary(rows, "default")
     lines = {line.split()[0]: " ".join(line.split())
              for line in capsys.readouterr().out.splitlines()[1:]}
@@ -50,11 +50,14 @@ def test_a_dense_flow_follows_a_small_shift():
 
 
 def test_the_share_is_reported_per_imaging_condition(capsys):
-    def row(name, default):
-        return {"name": name, "epe": {"delaunay": 2.0, "default": default, "ceiling": 1.0}}
+    def row(condition, default):
+        camera, radiometric, noise, blur = quality.CONDITIONS[condition]
+        return {"params": {"camera": camera, "radiometric": radiometric, "noise": noise,
+                           "blur": blur, "seed": 1},
+                "epe": {"delaunay": 2.0, "default": default, "ceiling": 1.0}}
 
-    rows = [row("box-per-lighting-s6", 1.5), row("city-per-lighting-s6", 1.0),
-            row("gable-per-lighting-s6", 2.5), row("box-aff-nonmonotone-s4", 1.2)]
+    noisy, recoloured = 5, 3  # perspective lighting (noise 4, blur 1); affine non-monotone
+    rows = [row(noisy, 1.5), row(noisy, 1.0), row(noisy, 2.5), row(recoloured, 1.2)]
     beyond._condition_summary(rows, {"default": {}})
     out = [" ".join(line.split()) for line in capsys.readouterr().out.splitlines()]
     # Shares 0.5, 1.0 and -0.5 (worse than Delaunay): median 0.5, one worse.
