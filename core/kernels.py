@@ -16,9 +16,14 @@ The fill rule lives in :func:`row_span` alone; every triangle kernel calls it.
 
 from __future__ import annotations
 
+import heapq
+import time
+
 import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit, objmode, prange, types
+from numba.np.numpy_support import from_dtype
+from numba.typed import Dict, List
 
 SUBPIXEL = 256
 
@@ -882,3 +887,627 @@ def spaced(points, distance, count):  # type: ignore[no-untyped-def]
             if kept == count:
                 break
     return keep[:kept]
+
+# --- the greedy edge-swap search ------------------------------------------------------------------
+#
+# The body of :func:`core.optimize.greedy_search`. The search is sequential: every swap changes
+# the scores of the four edges around it before the next best is chosen, and in Python each
+# swap cost 50-100 microseconds of bookkeeping (the quad's preconditions, the cache's dictionary,
+# the heap), more than the histograms it scores. Here the mesh's topology, the triangle cache's
+# index, the scores and the heap live in numba's typed containers and one call runs the search.
+# Every decision is the one of the Python search it replaced, bit for bit: the same
+# preconditions on the same fixed-point coordinates, the same histograms (each triangle counted
+# with its vertices in increasing order), the same sums and thresholds, the heap ordered by
+# gain over the threshold and then by edge, the look-ahead's pairs in the same order,
+# stable-sorted. The owners of an edge keep the order of :class:`core.mesh.Mesh` (the triangle
+# added first is first), which decides which apex is ``k`` and which slot a new triangle takes.
+#
+# The arguments travel in four tuples:
+# ``mesh = (tris, owners, ref_fixed, mov_fixed, n, reference, moving)``: the triangles by slot
+# (rows of -1 for empty slots), ``edge code -> packed owner slots`` (:func:`owners_dict`), the
+# fixed-point and the float vertices, ``n`` vertices; an edge ``(i, j)``, ``i < j``, has the
+# code ``i n + j``.
+# ``cache = (index, hist_box, mom_box, images, params, use_ncc, xtable)``: ``triangle key ->
+# row`` (the key of ``a < b < c`` is ``(a n + b) n + c``), the histogram and moment tables in
+# one-element lists (:func:`search_box`; they grow), the scoring images ``(reference bins,
+# reference values, moving)`` and their parameters ``(width, height, bins, bin offset, bin
+# scale, reference scale, moving scale)``, whether the cost is NCC (else NMI), the
+# :func:`xlogx_table`.
+# ``search = (best, gain, heap, retired, epsilon, epsilon_pixels, low, high)``: per edge its
+# gain over its threshold and its gain, the heap of ``(-margin, edge)``, the retired edges, the
+# threshold's parameters (:func:`core.optimize.gain_thresholds`).
+# ``state``: the integer state (``STATE_*``).
+
+#: Batches of this many triangles or more take the histogram kernel's threaded form (the
+#: histograms are the same either way).
+SEARCH_PARALLEL = 64
+
+#: Why a search stopped, by the index :func:`search_run` leaves in ``state[STATE_STOPPED]``.
+SEARCH_STOPS = ("no swap raises the consistency by more than epsilon", "max_iterations reached")
+
+# The integer state: the cache rows used, the swaps taken, the edges over their threshold, the
+# gains scored, why it stopped, whether the look-ahead has begun noting changed vertices.
+STATE_USED, STATE_TAKEN, STATE_POSITIVE, STATE_EVALUATIONS, STATE_STOPPED, STATE_MOVED = range(6)
+
+#: Most vertices of a searched mesh: a triangle's key ``(a n + b) n + c`` must fit in int64.
+SEARCH_MAX_VERTICES = 2**21 - 1
+
+#: A pair's six triangles, as columns of its row ``(i, j, k, l, m, p, r, p', r')``: the three
+#: before, ``(i, j, k), (i, j, l), (p, r, m)``, and the three after, ``(k, l, p'), (r', m, p),
+#: (r', m, r)``.
+PAIR_TRIANGLES = np.array([[0, 1, 2], [0, 1, 3], [5, 6, 4], [2, 3, 7], [8, 4, 5], [8, 4, 6]])
+
+_PACK = np.int64(1) << 32
+
+
+def search_state() -> np.ndarray:
+    """The integer state of a search that has not started."""
+    return np.zeros(6, dtype=np.int64)
+
+
+def owners_dict(codes: np.ndarray, owners: np.ndarray) -> Dict:
+    """The typed ``edge code -> owner slots`` of a mesh (:meth:`core.mesh.Mesh.edge_owners`)."""
+    return _owners_dict(np.ascontiguousarray(codes, dtype=np.int64),
+                        np.ascontiguousarray(owners, dtype=np.int64))
+
+
+def empty_index() -> Dict:
+    """A typed ``triangle key -> cache row`` index."""
+    return Dict.empty(types.int64, types.int64)
+
+
+def empty_scores() -> Dict:
+    """A typed ``edge code -> value`` map."""
+    return Dict.empty(types.int64, types.float64)
+
+
+def empty_set() -> Dict:
+    """A typed set of edge codes (``code -> 1``)."""
+    return Dict.empty(types.int64, types.int8)
+
+
+def empty_heap() -> List:
+    """A typed heap of ``(-margin, edge code)``."""
+    return List.empty_list(types.Tuple((types.float64, types.int64)))
+
+
+def search_box(array: np.ndarray) -> List:
+    """A typed one-element list holding ``array``: the search grows it in place."""
+    out = List.empty_list(types.Array(from_dtype(array.dtype), array.ndim, "C"))
+    out.append(array)
+    return out
+
+
+def search_outputs() -> tuple[List, List, List, List]:
+    """The search's records: the accepted swaps ``(edge, new edge, kind: 0 alone, 1 in a
+    pair)``, their ``(gain, seconds)``, the cache rows of their quads ``(2 removed, 2 added)``,
+    and every swap made on the mesh in order (undone trials included), as edge codes."""
+    return (List.empty_list(types.UniTuple(types.int64, 3)),
+            List.empty_list(types.UniTuple(types.float64, 2)),
+            List.empty_list(types.UniTuple(types.int64, 4)),
+            List.empty_list(types.int64))
+
+
+@njit(cache=True)
+def _owners_dict(codes, owners):  # type: ignore[no-untyped-def]
+    out = Dict.empty(types.int64, types.int64)
+    for e in range(codes.shape[0]):
+        out[codes[e]] = owners[e, 0] * _PACK + owners[e, 1] + 1
+    return out
+
+
+@njit(cache=True, inline="always")
+def _unpack(v):  # type: ignore[no-untyped-def]
+    return v // _PACK, v % _PACK - 1
+
+
+@njit(cache=True, inline="always")
+def _edge(a, b, n):  # type: ignore[no-untyped-def]
+    return a * n + b if a < b else b * n + a
+
+
+@njit(cache=True, inline="always")
+def _cross(fixed, a, b, c):  # type: ignore[no-untyped-def]
+    return ((fixed[b, 0] - fixed[a, 0]) * (fixed[c, 1] - fixed[a, 1])
+            - (fixed[b, 1] - fixed[a, 1]) * (fixed[c, 0] - fixed[a, 0]))
+
+
+@njit(cache=True, inline="always")
+def _sign(v):  # type: ignore[no-untyped-def]
+    return (v > 0) - (v < 0)
+
+
+@njit(cache=True)
+def _quad(mesh, code):  # type: ignore[no-untyped-def]
+    """``(i, j, k, l)`` of an internal edge (as :meth:`Mesh.quad`) and its two slots."""
+    tris, owners, n = mesh[0], mesh[1], mesh[4]
+    s0, s1 = _unpack(owners[code])
+    i, j = code // n, code % n
+    k = tris[s0, 0] + tris[s0, 1] + tris[s0, 2] - i - j
+    l = tris[s1, 0] + tris[s1, 1] + tris[s1, 2] - i - j  # noqa: E741
+    return i, j, k, l, s0, s1
+
+
+@njit(cache=True)
+def _swappable(mesh, code):  # type: ignore[no-untyped-def]
+    """:meth:`Mesh.swappable_quad`: whether the edge may be swapped, and its ``i, j, k, l``."""
+    owners, ref_fixed, mov_fixed, n = mesh[1], mesh[2], mesh[3], mesh[4]
+    v = owners.get(code, -1)
+    if v < 0 or v % _PACK == 0:  # no edge, or a boundary edge
+        return False, 0, 0, 0, 0
+    i, j, k, l, _, _ = _quad(mesh, code)  # noqa: E741
+    if _edge(k, l, n) in owners:
+        return False, 0, 0, 0, 0
+    flips = np.zeros(2, dtype=np.bool_)
+    for f in range(2):
+        fixed = ref_fixed if f == 0 else mov_fixed
+        ijk, ijl = _cross(fixed, i, j, k), _cross(fixed, i, j, l)
+        kli, klj = _cross(fixed, k, l, i), _cross(fixed, k, l, j)
+        # Strictly convex: each diagonal separates the other's ends.
+        if not ((ijk > 0 and ijl < 0) or (ijk < 0 and ijl > 0)):
+            return False, 0, 0, 0, 0
+        if not ((kli > 0 and klj < 0) or (kli < 0 and klj > 0)):
+            return False, 0, 0, 0, 0
+        flips[f] = kli > 0
+    # The new triangles turn the same way in both images.
+    if flips[0] != flips[1]:
+        return False, 0, 0, 0, 0
+    return True, i, j, k, l
+
+
+@njit(cache=True)
+def _eligible(mesh, retired, code):  # type: ignore[no-untyped-def]
+    """:func:`_swappable`, and the edge it would create has not been swapped away before."""
+    ok, i, j, k, l = _swappable(mesh, code)  # noqa: E741
+    return ok and _edge(k, l, mesh[4]) not in retired, i, j, k, l
+
+
+@njit(cache=True)
+def _drop(mesh, slot):  # type: ignore[no-untyped-def]
+    tris, owners, n = mesh[0], mesh[1], mesh[4]
+    for c in range(3):
+        code = _edge(tris[slot, c], tris[slot, (c + 1) % 3], n)
+        s0, s1 = _unpack(owners[code])
+        if s0 == slot:
+            s0, s1 = s1, -1
+        elif s1 == slot:
+            s1 = -1
+        if s0 < 0:
+            del owners[code]
+        else:
+            owners[code] = s0 * _PACK + s1 + 1
+    tris[slot, 0] = tris[slot, 1] = tris[slot, 2] = -1
+
+
+@njit(cache=True)
+def _add(mesh, slot, a, b, c):  # type: ignore[no-untyped-def]
+    """Store triangle ``(a, b, c)`` in ``slot``, positively oriented in the reference."""
+    tris, owners, ref_fixed, n = mesh[0], mesh[1], mesh[2], mesh[4]
+    if _cross(ref_fixed, a, b, c) < 0:
+        b, c = c, b
+    tris[slot, 0], tris[slot, 1], tris[slot, 2] = a, b, c
+    for e in range(3):
+        code = _edge(tris[slot, e], tris[slot, (e + 1) % 3], n)
+        v = owners.get(code, -1)
+        owners[code] = slot * _PACK if v < 0 else (v // _PACK) * _PACK + slot + 1
+
+
+@njit(cache=True)
+def _swap(mesh, code, log):  # type: ignore[no-untyped-def]
+    """:meth:`Mesh.swap` without the check, noted in ``log``; returns the new edge's code."""
+    i, j, k, l, s0, s1 = _quad(mesh, code)  # noqa: E741
+    _drop(mesh, s0)
+    _drop(mesh, s1)
+    _add(mesh, s0, k, l, i)
+    _add(mesh, s1, k, l, j)
+    log.append(code)
+    return _edge(k, l, mesh[4])
+
+
+@njit(cache=True, inline="always")
+def _sorted3(a, b, c):  # type: ignore[no-untyped-def]
+    if a > b:
+        a, b = b, a
+    if b > c:
+        b, c = c, b
+        if a > b:
+            a, b = b, a
+    return a, b, c
+
+
+@njit(cache=True)
+def _cache_rows(tri, mesh, cache, state):  # type: ignore[no-untyped-def]
+    """Cache rows of the triangles ``tri`` (K, 3), any vertex order; those not cached yet are
+    counted first, in one batch, with their vertices in increasing order."""
+    n, reference, moving = mesh[4], mesh[5], mesh[6]
+    index, hist_box, mom_box, images, params = cache[0], cache[1], cache[2], cache[3], cache[4]
+    k = tri.shape[0]
+    start = state[STATE_USED]
+    rows = np.empty(k, dtype=np.int64)
+    missing = np.empty((k, 3), dtype=np.int64)
+    m = 0
+    for t in range(k):
+        a, b, c = _sorted3(tri[t, 0], tri[t, 1], tri[t, 2])
+        key = (a * n + b) * n + c
+        r = index.get(key, -1)
+        if r < 0:
+            r = start + m
+            index[key] = r
+            missing[m, 0], missing[m, 1], missing[m, 2] = a, b, c
+            m += 1
+        rows[t] = r
+    if m == 0:
+        return rows
+    hist = hist_box[0]
+    if start + m > hist.shape[0]:
+        grown = np.empty((max(start + m, 2 * hist.shape[0]), hist.shape[1]), dtype=hist.dtype)
+        grown[:start] = hist[:start]
+        hist_box[0] = grown
+        hist = grown
+    moments = mom_box[0]
+    with_moments = moments.shape[0] > 0
+    if with_moments and start + m > moments.shape[0]:
+        grown_m = np.empty((hist.shape[0], 6))
+        grown_m[:start] = moments[:start]
+        mom_box[0] = grown_m
+        moments = grown_m
+    ref_tris = np.empty((m, 3, 2))
+    mov_tris = np.empty((m, 3, 2))
+    for t in range(m):
+        for c in range(3):
+            ref_tris[t, c, 0] = reference[missing[t, c], 0]
+            ref_tris[t, c, 1] = reference[missing[t, c], 1]
+            mov_tris[t, c, 0] = moving[missing[t, c], 0]
+            mov_tris[t, c, 1] = moving[missing[t, c], 1]
+    out = hist[start:start + m]
+    out[:] = 0
+    out_m = moments[start:start + m] if with_moments else moments
+    if with_moments:
+        out_m[:] = 0.0
+    ref_bins, ref_values, moving_image = images
+    width, height, bins, bin_offset, bin_scale, ref_scale, mov_scale = params
+    if m >= SEARCH_PARALLEL:
+        triangle_histograms_parallel(ref_tris, mov_tris, ref_bins, ref_values, moving_image,
+                                     width, height, bins, bin_offset, bin_scale, ref_scale,
+                                     mov_scale, out, out_m)
+    else:
+        triangle_histograms(ref_tris, mov_tris, ref_bins, ref_values, moving_image, width,
+                            height, bins, bin_offset, bin_scale, ref_scale, mov_scale, out, out_m)
+    state[STATE_USED] = start + m
+    return rows
+
+
+@njit(cache=True)
+def gain_threshold(pixels, epsilon, epsilon_pixels, low, high):  # type: ignore[no-untyped-def]
+    """:func:`core.optimize.gain_thresholds` of one quad of ``pixels`` pixels (``low``,
+    ``high``: :data:`core.optimize.THRESHOLD_RANGE`), the same value bit for bit: the same
+    IEEE operations in the same order."""
+    if epsilon_pixels <= 0:
+        return epsilon
+    scaled = epsilon * np.sqrt(epsilon_pixels / max(pixels, 1.0))
+    return min(max(scaled, low * epsilon), high * epsilon)
+
+
+@njit(cache=True, inline="always")
+def _threshold(pixels, search):  # type: ignore[no-untyped-def]
+    return gain_threshold(pixels, search[4], search[5], search[6], search[7])
+
+
+@njit(cache=True)
+def _values(rows, cache):  # type: ignore[no-untyped-def]
+    """Consistency (NMI, or NCC) and pixel count of the sums of the rows ``rows`` (K, S)."""
+    hist_box, mom_box, params, use_ncc, xtable = cache[1], cache[2], cache[4], cache[5], cache[6]
+    k = rows.shape[0]
+    mi = np.empty(k)
+    nmi = np.empty(k)
+    pixels = np.empty(k)
+    summed_information(hist_box[0], rows, params[2], mi, nmi, pixels, xtable)
+    if not use_ncc:
+        return nmi, pixels
+    # core.similarity.ncc of the summed moments.
+    moments = mom_box[0]
+    value = np.empty(k)
+    m = np.empty(6)
+    for r in range(k):
+        m[:] = moments[rows[r, 0]]
+        for s in range(1, rows.shape[1]):
+            m += moments[rows[r, s]]
+        n = max(m[0], 1.0)
+        cov = m[5] - m[1] * m[2] / n
+        va = m[3] - m[1] * m[1] / n
+        vb = m[4] - m[2] * m[2] / n
+        den = np.sqrt(max(va, 0.0) * max(vb, 0.0))
+        value[r] = cov / den if den > 1e-12 else 0.0
+    return value, pixels
+
+
+@njit(cache=True)
+def _score_quads(quads, mesh, cache, state):  # type: ignore[no-untyped-def]
+    """Gain of swapping each quad ``(i, j, k, l)`` of ``quads`` (E, 4) and its pixel count
+    (:meth:`core.optimize.QuadScorer.quad_deltas`)."""
+    e = quads.shape[0]
+    tri = np.empty((4 * e, 3), dtype=np.int64)
+    for q in range(e):
+        i, j, k, l = quads[q, 0], quads[q, 1], quads[q, 2], quads[q, 3]  # noqa: E741
+        tri[4 * q, 0], tri[4 * q, 1], tri[4 * q, 2] = i, j, k
+        tri[4 * q + 1, 0], tri[4 * q + 1, 1], tri[4 * q + 1, 2] = i, j, l
+        tri[4 * q + 2, 0], tri[4 * q + 2, 1], tri[4 * q + 2, 2] = k, l, i
+        tri[4 * q + 3, 0], tri[4 * q + 3, 1], tri[4 * q + 3, 2] = k, l, j
+    rows = _cache_rows(tri, mesh, cache, state)
+    value, pixels = _values(rows.reshape(2 * e, 2), cache)  # before, after
+    gains = np.empty(e)
+    counts = np.empty(e)
+    for q in range(e):
+        gains[q] = value[2 * q + 1] - value[2 * q]
+        counts[q] = pixels[2 * q]
+    return gains, counts, rows
+
+
+@njit(cache=True)
+def _internal_edges(owners):  # type: ignore[no-untyped-def]
+    """Codes of the internal edges, sorted."""
+    codes = np.empty(len(owners), dtype=np.int64)
+    count = 0
+    for code, v in owners.items():
+        if v % _PACK > 0:
+            codes[count] = code
+            count += 1
+    return np.sort(codes[:count])
+
+
+@njit(cache=True)
+def pair_moves(mesh, retired, moved, moved_only):  # type: ignore[no-untyped-def]
+    """Every valid pair of swaps of the look-ahead: rows ``(i, j, k, l, m, p, r, p', r')``
+    int64, in the order of the first swap's edge, then of ``p`` in ``(i, j)`` and ``r`` in
+    ``(k, l)``.
+
+    Swapping ``e = (i, j)`` of quad ``(i, j; k, l)`` makes triangles ``(k, l, i)`` and
+    ``(k, l, j)``; a second swap then turns one of the quad's sides ``b = (p, r)`` over the
+    outer triangle ``(p, r, m)`` into ``(r', m)``, ``r'`` the other of ``k, l``. Both swaps meet
+    the preconditions of :meth:`Mesh.swap_blocker` on the mesh they apply to and neither
+    creates an edge of ``retired``; with ``moved_only``, the first swap's edge has an end
+    flagged in ``moved`` (per vertex).
+    """
+    tris, owners, ref_fixed, mov_fixed, n = mesh[0], mesh[1], mesh[2], mesh[3], mesh[4]
+    codes = _internal_edges(owners)
+    out = np.empty((4 * len(codes), 9), dtype=np.int64)
+    count = 0
+    for code in codes:
+        if moved_only and moved[code // n] == 0 and moved[code % n] == 0:
+            continue
+        ok, i, j, k, l = _eligible(mesh, retired, code)  # noqa: E741
+        if not ok:
+            continue
+        for choice in range(4):
+            p, p2 = (i, j) if choice < 2 else (j, i)
+            r, r2 = (k, l) if choice % 2 == 0 else (l, k)
+            t0, t1 = _unpack(owners[_edge(p, r, n)])
+            if t1 < 0:
+                continue
+            a0 = tris[t0, 0] + tris[t0, 1] + tris[t0, 2] - p - r
+            a1 = tris[t1, 0] + tris[t1, 1] + tris[t1, 2] - p - r
+            # The outer triangle over the side (p, r) is the one of its two without p'.
+            if a0 == p2 and a1 != p2:
+                m = a1
+            elif a1 == p2 and a0 != p2:
+                m = a0
+            else:
+                continue
+            if m == r2 or m == p2 or _edge(r2, m, n) in owners or _edge(r2, m, n) in retired:
+                continue
+            # The quad (p, r; r', m) of the second swap is strictly convex in both images, and
+            # its new triangles turn the same way in both.
+            new_p = _sign(_cross(ref_fixed, r2, m, p))
+            new_r = _sign(_cross(ref_fixed, r2, m, r))
+            if new_p != _sign(_cross(mov_fixed, r2, m, p)):
+                continue
+            if new_r != _sign(_cross(mov_fixed, r2, m, r)):
+                continue
+            good = new_p * new_r < 0
+            for fixed in (ref_fixed, mov_fixed):
+                good = good and _sign(_cross(fixed, p, r, r2)) * _sign(_cross(fixed, p, r, m)) < 0
+            if not good:
+                continue
+            row = out[count]
+            row[0], row[1], row[2], row[3], row[4] = i, j, k, l, m
+            row[5], row[6], row[7], row[8] = p, r, p2, r2
+            count += 1
+    return out[:count]
+
+
+@njit(cache=True)
+def _now():  # type: ignore[no-untyped-def]
+    with objmode(t="float64"):
+        t = time.perf_counter()
+    return t
+
+
+@njit(cache=True)
+def _record(code, added, delta, move, mesh, moved, state, out, t0):  # type: ignore[no-untyped-def]
+    """Note an accepted swap: its edges, gain, kind (0 alone, 1 in a pair) and time."""
+    n = mesh[4]
+    if state[STATE_MOVED]:
+        moved[code // n] = moved[code % n] = moved[added // n] = moved[added % n] = 1
+    out[0].append((code, added, move))
+    out[1].append((delta, _now() - t0))
+    state[STATE_TAKEN] += 1
+
+
+@njit(cache=True)
+def _note_quad(i, j, k, l, mesh, cache, state, out):  # type: ignore[no-untyped-def]  # noqa: E741
+    """Note the cache rows of a quad about to be swapped: the global histogram's change."""
+    tri = np.array([[i, j, k], [i, j, l], [k, l, i], [k, l, j]], dtype=np.int64)
+    rows = _cache_rows(tri, mesh, cache, state)
+    out[2].append((rows[0], rows[1], rows[2], rows[3]))
+
+
+@njit(cache=True)
+def _rescore(edges, mesh, cache, search, state):  # type: ignore[no-untyped-def]
+    """Score again the edges ``edges`` (in order, each once) whose quads a swap changed;
+    those that may no longer be swapped leave the heap."""
+    best, gain, heap, retired = search[0], search[1], search[2], search[3]
+    ring = np.empty(len(edges), dtype=np.int64)
+    quads = np.empty((len(edges), 4), dtype=np.int64)
+    count = 0
+    for x in range(len(edges)):
+        b = edges[x]
+        seen = False
+        for y in range(x):
+            seen = seen or edges[y] == b
+        if seen:
+            continue
+        if best.pop(b, 0.0) > 0.0:
+            state[STATE_POSITIVE] -= 1
+        ok, i, j, k, l = _eligible(mesh, retired, b)  # noqa: E741
+        if ok:
+            ring[count] = b
+            quads[count, 0], quads[count, 1], quads[count, 2], quads[count, 3] = i, j, k, l
+            count += 1
+    if count == 0:
+        return
+    gains, pixels, _ = _score_quads(quads[:count], mesh, cache, state)
+    for q in range(count):
+        d = gains[q] - _threshold(pixels[q], search)
+        best[ring[q]] = d
+        if d > 0.0:
+            state[STATE_POSITIVE] += 1
+        gain[ring[q]] = gains[q]
+        heapq.heappush(heap, (-d, ring[q]))
+    state[STATE_EVALUATIONS] += count
+
+
+@njit(cache=True, inline="always")
+def _boundary(i, j, k, l, n):  # type: ignore[no-untyped-def]  # noqa: E741
+    """The quad's four outer edges (:attr:`core.mesh.Quad.boundary`)."""
+    return np.array([_edge(i, k, n), _edge(k, j, n), _edge(j, l, n), _edge(l, i, n)])
+
+
+@njit(cache=True)
+def _take_pairs(mesh, cache, search, state, moved, max_iterations, out,
+                t0):  # type: ignore[no-untyped-def]
+    """One pass of pair moves; True if any was taken. After the first pass over the whole
+    mesh, only edges touching a quad changed since the previous pass are tried again."""
+    n = mesh[4]
+    retired = search[3]
+    pairs = pair_moves(mesh, retired, moved, state[STATE_MOVED] != 0)
+    moved[:] = 0
+    state[STATE_MOVED] = 1
+    count = pairs.shape[0]
+    if count == 0:
+        return False
+    tri = np.empty((6 * count, 3), dtype=np.int64)
+    for t in range(count):
+        for s in range(6):
+            for c in range(3):
+                tri[6 * t + s, c] = pairs[t, PAIR_TRIANGLES[s, c]]
+    rows = _cache_rows(tri, mesh, cache, state)
+    value, pixels = _values(rows.reshape(2 * count, 3), cache)  # before, after
+    pair_gain = np.empty(count)
+    over = np.empty(count)
+    for t in range(count):
+        pair_gain[t] = value[2 * t + 1] - value[2 * t]
+        over[t] = pair_gain[t] - _threshold(pixels[2 * t], search)
+    state[STATE_EVALUATIONS] += count
+    touched = np.zeros(n, dtype=np.bool_)
+    taken = False
+    log = out[3]
+    for t in np.argsort(-over, kind="mergesort"):
+        if over[t] <= 0.0 or state[STATE_TAKEN] + 2 > max_iterations:
+            break
+        i, j, k, l, m = pairs[t, 0], pairs[t, 1], pairs[t, 2], pairs[t, 3], pairs[t, 4]  # noqa: E741
+        p, r, r2 = pairs[t, 5], pairs[t, 6], pairs[t, 8]
+        if touched[i] or touched[j] or touched[k] or touched[l] or touched[m]:
+            continue  # scored on a mesh that has changed around it since
+        e, b = _edge(i, j, n), _edge(p, r, n)
+        qi, qj, qk, ql, _, _ = _quad(mesh, e)
+        added = _swap(mesh, e, log)
+        bi, bj, bk, bl, _, _ = _quad(mesh, b)
+        if not ((bk == r2 and bl == m) or (bk == m and bl == r2)) or not _eligible(
+                mesh, retired, b)[0]:
+            _swap(mesh, added, log)  # the pair's second swap is not there: undo
+            continue
+        _note_quad(qi, qj, qk, ql, mesh, cache, state, out)
+        retired[e] = np.int8(1)
+        _record(e, added, pair_gain[t], 1, mesh, moved, state, out, t0)
+        _note_quad(bi, bj, bk, bl, mesh, cache, state, out)
+        added_b = _swap(mesh, b, log)
+        retired[b] = np.int8(1)
+        _record(b, added_b, pair_gain[t], 1, mesh, moved, state, out, t0)
+        touched[i] = touched[j] = touched[k] = touched[l] = touched[m] = True
+        _rescore(np.concatenate((_boundary(qi, qj, qk, ql, n), _boundary(bi, bj, bk, bl, n))),
+                 mesh, cache, search, state)
+        taken = True
+    return taken
+
+
+@njit(cache=True)
+def search_start(mesh, cache, search, state, global_hist):  # type: ignore[no-untyped-def]
+    """The search's first pass: every swappable edge scored and the heap built; the joint
+    histogram of the whole mesh summed into ``global_hist`` (int64, ``bins * bins``)."""
+    tris, owners = mesh[0], mesh[1]
+    best, gain, heap = search[0], search[1], search[2]
+    current = _cache_rows(tris[np.flatnonzero(tris[:, 0] >= 0)], mesh, cache, state)
+    codes = _internal_edges(owners)
+    quads = np.empty((len(codes), 4), dtype=np.int64)
+    candidates = np.empty(len(codes), dtype=np.int64)
+    count = 0
+    for code in codes:
+        ok, i, j, k, l = _swappable(mesh, code)  # noqa: E741
+        if ok:
+            quads[count, 0], quads[count, 1], quads[count, 2], quads[count, 3] = i, j, k, l
+            candidates[count] = code
+            count += 1
+    gains, pixels, _ = _score_quads(quads[:count], mesh, cache, state)
+    hist = cache[1][0]
+    for r in current:
+        for c in range(hist.shape[1]):
+            global_hist[c] += hist[r, c]
+    for q in range(count):
+        d = gains[q] - _threshold(pixels[q], search)
+        best[candidates[q]] = d
+        gain[candidates[q]] = gains[q]
+        heap.append((-d, candidates[q]))
+        if d > 0.0:
+            state[STATE_POSITIVE] += 1
+    heapq.heapify(heap)
+    state[STATE_EVALUATIONS] = count
+
+
+@njit(cache=True)
+def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, report, out,
+               t0):  # type: ignore[no-untyped-def]
+    """Swap the best edge while a gain exceeds its threshold (:func:`core.optimize.greedy_search`),
+    after :func:`search_start`.
+
+    ``moved`` flags per vertex those of quads changed since the last pass of pairs; ``out`` is
+    :func:`search_outputs`; ``t0`` the search's start (:func:`time.perf_counter`). Returns True
+    when it stopped to report progress (``report``, every 16 swaps): call it again to go on.
+    ``state[STATE_STOPPED]`` indexes :data:`SEARCH_STOPS`.
+    """
+    n = mesh[4]
+    best, gain, heap, retired = search[0], search[1], search[2], search[3]
+    while True:
+        while len(heap) > 0 and best.get(heap[0][1], np.nan) != -heap[0][0]:
+            heapq.heappop(heap)
+        if len(heap) == 0 or -heap[0][0] <= 0.0:
+            if lookahead and _take_pairs(mesh, cache, search, state, moved, max_iterations,
+                                         out, t0):
+                continue
+            state[STATE_STOPPED] = 0
+            return False
+        if state[STATE_TAKEN] >= max_iterations:
+            state[STATE_STOPPED] = 1
+            return False
+        e = heapq.heappop(heap)[1]
+        del best[e]
+        state[STATE_POSITIVE] -= 1  # it was the best, over its threshold
+        ok, i, j, k, l = _eligible(mesh, retired, e)  # noqa: E741
+        if not ok:
+            continue  # a swap elsewhere created, or retired, the edge this one would add
+        _note_quad(i, j, k, l, mesh, cache, state, out)
+        added = _swap(mesh, e, out[3])
+        retired[e] = np.int8(1)
+        _record(e, added, gain[e], 0, mesh, moved, state, out, t0)
+        _rescore(_boundary(i, j, k, l, n), mesh, cache, search, state)
+        if report and state[STATE_TAKEN] % 16 == 0:
+            return True

@@ -218,6 +218,31 @@ class Mesh:
         """Fixed-point vertices of the reference and the moving mesh, ``(N, 2)`` int64 each."""
         return self._fixed_arrays
 
+    def edge_owners(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every edge as a code ``i * N + j`` (``N`` vertices), sorted, and its triangles.
+
+        Returns
+        -------
+        codes : ndarray of int64, shape (E,)
+            Sorted; :func:`numpy.searchsorted` finds an edge in it.
+        owners : ndarray of int64, shape (E, 2)
+            Slots of the edge's first and second triangle, in the order they were added (that
+            of :meth:`quad`'s ``k`` and ``l``); -1 for the missing second one of a boundary edge.
+        """
+        n = len(self.reference)
+        slots, tris = self._live()
+        # Each side of each triangle with its slot, grouped by edge; in a group, the owners in
+        # the order they were added, which is their order in _edges.
+        second = tris[:, [1, 2, 0]]
+        code = (np.minimum(tris, second) * n + np.maximum(tris, second)).ravel()
+        order = np.lexsort((np.repeat(self._stamps[slots], 3), code))
+        code, owner = code[order], np.repeat(slots, 3)[order]
+        first = np.flatnonzero(np.diff(code, prepend=-1))
+        pair = np.diff(first, append=len(code)) == 2
+        owners = np.stack([owner[first], np.full(len(first), -1, dtype=np.int64)], axis=1)
+        owners[pair, 1] = owner[first[pair] + 1]
+        return code[first], owners
+
     def edge_table(self) -> tuple[np.ndarray, np.ndarray]:
         """Every edge as a code ``i * N + j`` (``N`` vertices), sorted, and its apexes.
 
@@ -230,18 +255,15 @@ class Mesh:
             :meth:`quad`, in its order); -1 for the missing second one of a boundary edge.
         """
         n = len(self.reference)
-        slots, tris = self._live()
-        # Each side of each triangle with its apex, grouped by edge; in a group, the owners in
-        # the order they were added, which is their order in _edges.
-        second, third = tris[:, [1, 2, 0]], tris[:, [2, 0, 1]]
-        code = (np.minimum(tris, second) * n + np.maximum(tris, second)).ravel()
-        order = np.lexsort((np.repeat(self._stamps[slots], 3), code))
-        code, apex = code[order], third.ravel()[order]
-        first = np.flatnonzero(np.diff(code, prepend=-1))
-        pair = np.diff(first, append=len(code)) == 2
-        apexes = np.stack([apex[first], np.full(len(first), -1, dtype=np.int64)], axis=1)
-        apexes[pair, 1] = apex[first[pair] + 1]
-        return code[first], apexes
+        codes, owners = self.edge_owners()
+        ends = codes // n + codes % n
+        apexes = np.where(owners >= 0, self._rows[owners].sum(axis=2) - ends[:, None], -1)
+        return codes, apexes
+
+    def slot_triangles(self) -> np.ndarray:
+        """Triangles by slot, ``(S, 3)`` int64, rows of -1 for empty slots (a copy)."""
+        self._sync()
+        return self._rows.copy()
 
     def across(self, e: Edge, apex: int) -> int:
         """Vertex facing ``apex`` across internal edge ``e``, -1 if there is none.

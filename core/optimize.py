@@ -8,21 +8,21 @@ consistency after a swap an O(M^2) update.
 
 from __future__ import annotations
 
-import heapq
-import math
 import time
-from collections.abc import Callable, Collection, Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from pwlreg.core.mesh import Edge, Mesh, Quad, edge_key
+from pwlreg.core import kernels
+from pwlreg.core.mesh import Edge, Mesh, Quad
 from pwlreg.core.similarity import (
     ScoringImages,
     mutual_information,
     ncc,
     summed_information,
     triangle_statistics,
+    xlogx_table,
 )
 
 Triple = tuple[int, int, int]
@@ -32,10 +32,6 @@ ProgressFn = Callable[[float], None]
 #: of it, large quads across an occluding edge took noise for gains (an automatic occluder
 #: scene ended 8 % worse than Delaunay with 1/5; 1 % better with 1/2).
 THRESHOLD_RANGE = (0.5, 5.0)
-
-#: Pairs of swaps scored at once by the look-ahead when the cost has no ``summed`` (their six
-#: histograms each are gathered).
-PAIR_BLOCK = 512
 
 
 @dataclass(frozen=True)
@@ -371,95 +367,13 @@ def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -
     return np.clip(scaled, low * epsilon, high * epsilon)
 
 
-def gain_threshold(pixels: float, epsilon: float, epsilon_pixels: float) -> float:
-    """:func:`gain_thresholds` of one quad, the same value bit for bit (the same IEEE
-    operations in the same order) without numpy's per-call cost: the search asks it for a
-    few quads at a time."""
-    if epsilon_pixels <= 0:
-        return float(epsilon)
-    scaled = epsilon * math.sqrt(epsilon_pixels / max(pixels, 1.0))
-    low, high = THRESHOLD_RANGE
-    return min(max(scaled, low * epsilon), high * epsilon)
-
-
-def pair_moves(
-    mesh: Mesh,
-    edges: list[Edge] | None,
-    retired: Collection[Edge],
-    near: Iterable[int] | None = None,
-) -> np.ndarray:
-    """Every valid pair of swaps starting with one of ``edges`` (each already swappable).
-
-    ``edges`` None stands for every swappable edge of the mesh, in order, or with ``near``
-    those with an end among these vertices (found in one batch with the pairs).
-
-    Swapping ``e = (i, j)`` of quad ``(i, j; k, l)`` makes triangles ``(k, l, i)`` and
-    ``(k, l, j)``; a second swap then turns one of the quad's sides ``b = (p, r)`` (``p`` in
-    ``{i, j}``, ``r`` in ``{k, l}``) over the outer triangle ``(p, r, m)`` into ``(r', m)``,
-    ``r'`` the other of ``k, l``. Both swaps must meet the preconditions of
-    :meth:`Mesh.swap_blocker` on the mesh they apply to, and neither may create an edge of
-    ``retired`` (``(i, j)`` with ``i < j``).
-
-    Returns
-    -------
-    ndarray of int64, shape (P, 9)
-        Rows ``(i, j, k, l, m, p, r, p', r')``, ``p'`` the other of ``i, j``. The pentagon's
-        three triangles go from ``(i, j, k), (i, j, l), (p, r, m)`` to ``(k, l, p'),
-        (r', m, p), (r', m, r)``.
-    """
-    if edges is not None and not edges:
-        return np.zeros((0, 9), dtype=np.int64)
-    # Vectorized over every edge and side, the retired edges as codes.
-    codes, apexes = mesh.edge_table()
-    n = len(mesh.reference)
-
-    def find(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Rows of the edges (a, b) in the table, and whether each exists."""
-        code = np.minimum(a, b) * n + np.maximum(a, b)
-        at = np.minimum(np.searchsorted(codes, code), len(codes) - 1)
-        return at, codes[at] == code
-
-    if edges is None:
-        quads = mesh.swappable_quads(near, (codes, apexes))
-    else:
-        ij = np.array(edges, dtype=np.int64).reshape(-1, 2)
-        at, _ = find(ij[:, 0], ij[:, 1])
-        quads = np.column_stack([ij, apexes[at]])  # (i, j, k, l) as Mesh.quad gives them
-    banned = np.array([i * n + j for i, j in retired], dtype=np.int64)
-
-    def allowed(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return ~np.isin(np.minimum(a, b) * n + np.maximum(a, b), banned)
-
-    i, j, k, l = quads[allowed(quads[:, 2], quads[:, 3])].T  # noqa: E741
-    # The four second swaps of each, in the order p in (i, j), then r in (k, l).
-    p, p2 = np.stack([i, i, j, j], axis=1), np.stack([j, j, i, i], axis=1)
-    r, r2 = np.stack([k, l, k, l], axis=1), np.stack([l, k, l, k], axis=1)
-    at, _ = find(p, r)
-    a0, a1 = apexes[at, 0], apexes[at, 1]
-    # The outer triangle over the side (p, r) is the one of its two without p2.
-    m = np.where((a0 == p2) & (a1 != p2), a1, np.where((a1 == p2) & (a0 != p2), a0, -1))
-    ok = (a1 >= 0) & (m >= 0) & (m != r2) & (m != p2)
-    ok &= ~find(r2, np.where(ok, m, r2 + 1))[1]  # the second swap's new edge is not there yet
-    wide = [np.broadcast_to(c[:, None], p.shape) for c in (i, j, k, l)]
-    pairs = np.stack([*wide, m, p, r, p2, r2], axis=-1).reshape(-1, 9)[ok.ravel()]
-    m, p, r, r2 = pairs[:, 4], pairs[:, 5], pairs[:, 6], pairs[:, 8]
-    ok = np.ones(len(pairs), dtype=bool)
-    turns = []
-    for xy in mesh.fixed_arrays:
-        xm, xp, xr, xr2 = xy[m], xy[p], xy[r], xy[r2]
-
-        def orient(pa: np.ndarray, pb: np.ndarray, pc: np.ndarray) -> np.ndarray:
-            return np.sign((pb[:, 0] - pa[:, 0]) * (pc[:, 1] - pa[:, 1])
-                           - (pb[:, 1] - pa[:, 1]) * (pc[:, 0] - pa[:, 0]))
-
-        new_p, new_r = orient(xr2, xm, xp), orient(xr2, xm, xr)
-        # The quad (p, r; r', m) of the second swap is strictly convex...
-        ok &= (orient(xp, xr, xr2) * orient(xp, xr, xm) < 0) & (new_p * new_r < 0)
-        turns.append((new_p, new_r))
-    # ... in both images, and its new triangles turn the same way in both (no reversal).
-    ok &= (turns[0][0] == turns[1][0]) & (turns[0][1] == turns[1][1])
-    pairs = pairs[ok]
-    return pairs[allowed(pairs[:, 8], pairs[:, 4])]  # the second swap's new edge (r', m)
+def compiled_mesh(mesh: Mesh, tris: np.ndarray | None = None) -> tuple:
+    """The mesh as the compiled search holds it (:func:`core.kernels.search_run`): its
+    triangles by slot (``tris``, :meth:`Mesh.slot_triangles` if not given, which the search
+    changes in place), the owners of its edges, its fixed-point and float vertices."""
+    tris = mesh.slot_triangles() if tris is None else tris
+    return (tris, kernels.owners_dict(*mesh.edge_owners()), *mesh.fixed_arrays,
+            len(mesh.reference), mesh.reference, mesh.moving)
 
 
 def greedy_search(
@@ -477,7 +391,8 @@ def greedy_search(
     Algorithm 1 of the paper: score every edge that meets the swap preconditions; repeatedly
     swap the best one; after a swap re-score only the four outer edges of its quad (dropping
     those that no longer meet the preconditions); stop when no gain exceeds ``epsilon``. Ties
-    are broken by the smaller edge, so the result is deterministic.
+    are broken by the smaller edge, so the result is deterministic. The search runs compiled
+    (:func:`core.kernels.search_run`); the mesh takes its swaps at the end.
 
     One addition to the paper: an edge, once swapped away, is never created again. Quad gains
     are not differences of a global potential, so improving swaps can cycle (the five
@@ -498,7 +413,8 @@ def greedy_search(
     max_iterations : int
         Upper bound on accepted swaps.
     progress : callable, optional
-        Called with a fraction in [0, 1]; it may raise to abort the search.
+        Called with a fraction in [0, 1] every 16 swaps; it may raise to abort the search
+        (the mesh is then left as it was).
     epsilon_pixels : float
         With a positive value the threshold follows each quad's size
         (:func:`gain_thresholds`) and swaps go in order of their gain over it; 0 is the paper's
@@ -510,181 +426,62 @@ def greedy_search(
         turn twice to reach a crease). The search then goes on with single swaps.
     """
     t0 = time.perf_counter()
-    current = [_triple(mesh.triangle(s)) for s in mesh.slots()]
-    first = mesh.swappable_quads()
-    candidates = [(i, j) for i, j in first[:, :2].tolist()]
+    if cost not in COSTS:
+        raise ValueError(f"unknown cost {cost!r}; expected one of {sorted(COSTS)}")
+    n = len(mesh.reference)
+    if n > kernels.SEARCH_MAX_VERTICES:
+        raise ValueError(f"the search takes meshes of at most {kernels.SEARCH_MAX_VERTICES} "
+                         f"vertices, got {n}")
+    bins = images.bins
+    tris = mesh.slot_triangles()
     # Room for every triangle of the first pass and a few swaps' worth of new ones.
-    capacity = len(current) + 2 * len(candidates) + 256
-    cache = TriangleCache(
-        images, mesh, with_moments=COSTS[cost].needs_moments, capacity=capacity
-    )
-    scorer = QuadScorer(cache, cost)
-    cache.ensure(current)
-
-    def margins(quads: list[Quad] | np.ndarray) -> tuple[list[float], list[float]]:
-        gains, pixels = scorer.quad_deltas(quads)
-        if len(quads) > _NUMPY_BATCH:
-            over = gains - gain_thresholds(pixels, epsilon, epsilon_pixels)
-            return gains.tolist(), over.tolist()
-        listed = gains.tolist()
-        return listed, [g - gain_threshold(n, epsilon, epsilon_pixels)
-                        for g, n in zip(listed, pixels.tolist(), strict=True)]
-
-    gains, over = margins(first)
-    global_hist = cache.hist(current)
-    mi, nmi = (float(v) for v in mutual_information(global_hist, images.bins))
-    result = SearchResult(initial_mi=mi, initial_nmi=nmi, evaluations=len(candidates))
-
-    retired: set[Edge] = set()
-
-    def eligible(e: Edge) -> Quad | None:
-        """The quad of ``e`` if it may be swapped, else None."""
-        q = mesh.swappable_quad(e)
-        if q is None or edge_key(q.k, q.l) in retired:
-            return None
-        return q
-
-    # Keyed by the gain over the edge's threshold; the gain itself is what a step records.
-    best: dict[Edge, float] = dict(zip(candidates, over, strict=True))
-    gain: dict[Edge, float] = dict(zip(candidates, gains, strict=True))
-    heap = [(-d, e) for e, d in best.items()]
-    heapq.heapify(heap)
-    # Edges of ``best`` over their threshold, counted as they change: the progress fraction
-    # read it every 16 swaps, and a pass over ``best`` cost 5 % of the search (1139 vertices).
-    positive = sum(d > 0.0 for d in over)
-    stopped = "no swap raises the consistency by more than epsilon"
+    capacity = 4 * int(np.count_nonzero(tris[:, 0] >= 0)) + 256
+    with_moments = COSTS[cost].needs_moments
+    hist_box = kernels.search_box(np.empty((capacity, bins * bins), dtype=np.int32))
+    mom_box = kernels.search_box(np.empty((capacity if with_moments else 0, 6)))
+    compiled = compiled_mesh(mesh, tris)
+    cache = (kernels.empty_index(), hist_box, mom_box,
+             (images.reference_bins, images.reference_values, images.moving),
+             (int(images.shape[1]), int(images.shape[0]), int(bins),
+              float(images.moving_bin_offset), float(images.moving_bin_scale),
+              float(images.reference_scale), float(images.moving_scale)),
+             with_moments, xlogx_table())
+    low, high = THRESHOLD_RANGE
+    search = (kernels.empty_scores(), kernels.empty_scores(), kernels.empty_heap(),
+              kernels.empty_set(), float(epsilon), float(epsilon_pixels), float(low),
+              float(high))
+    state = kernels.search_state()
+    global_hist = np.zeros(bins * bins, dtype=np.int64)
+    kernels.search_start(compiled, cache, search, state, global_hist)
+    mi, nmi = (float(v) for v in mutual_information(global_hist, bins))
+    result = SearchResult(initial_mi=mi, initial_nmi=nmi)
     if progress is not None:
         progress(0.0)
-    # Accepted swaps, their SwapStep made at the end: the global histogram after every step is
-    # a cumulative sum of the steps' changes, and its MI and NMI one batched call.
-    taken: list[tuple[Edge, Edge, float, str, float]] = []
-    moves: list[np.ndarray] = []  # cache rows of each step's quad: two removed, two added
-
-    def move_hist(q: Quad) -> None:
-        """Note the global histogram's change by swapping the quad (its triangles are cached)."""
-        moves.append(cache.quad_rows([q])[0])
-
-    def record(e: Edge, added: Edge, delta: float, move: str) -> None:
-        if moved is not None:
-            moved.update((*e, *added))
-        taken.append((e, added, delta, move, time.perf_counter() - t0))
-
-    def rescore(edges: Iterable[Edge]) -> None:
-        nonlocal positive
-        ring, quads = [], []
-        for b in dict.fromkeys(edges):
-            if best.pop(b, 0.0) > 0.0:
-                positive -= 1
-            q = eligible(b)
-            if q is not None:
-                ring.append(b)
-                quads.append(q)
-        for b, g, d in zip(ring, *margins(quads), strict=True):
-            best[b] = d
-            positive += d > 0.0
-            gain[b] = g
-            heapq.heappush(heap, (-d, b))
-        result.evaluations += len(ring)
-
-    moved: set[int] | None = None  # vertices of quads changed since the last pass of pairs
-    # Triangles of a pair, as columns of its row (i, j, k, l, m, p, r, p', r'): the three
-    # before, (i, j, k), (i, j, l), (p, r, m), and the three after, (k, l, p'), (r', m, p),
-    # (r', m, r).
-    pair_triangles = np.array([[0, 1, 2], [0, 1, 3], [5, 6, 4], [2, 3, 7], [8, 4, 5], [8, 4, 6]])
-
-    def take_pair() -> bool:
-        """One pass of pair moves; True if any was taken. After the first pass over the whole
-        mesh, only edges touching a quad changed since the previous pass are tried again."""
-        nonlocal moved
-        pairs = pair_moves(mesh, None, retired, near=moved)
-        moved = set()
-        if len(pairs) == 0:
-            return False
-        rows = cache.lookup(pairs[:, pair_triangles]).reshape(-1, 2, 3)  # before/after
-        bins = cache.bins
-        if scorer.cost.summed is not None:
-            value, counts = scorer.cost.summed(cache.table, rows, bins)
-            pair_gain = value[:, 1] - value[:, 0]
-            pixels = counts[:, 0]
-        else:
-            pair_gain = np.empty(len(rows))
-            pixels = np.empty(len(rows))
-            for start in range(0, len(rows), PAIR_BLOCK):
-                # Bounded memory: the six histograms of a pair are gathered.
-                block = rows[start:start + PAIR_BLOCK]
-                h = cache.hist_rows(block).sum(axis=2)
-                m = cache.moment_rows(block).sum(axis=2) if scorer.cost.needs_moments else None
-                value = scorer.cost.measure(h, m, bins)  # before and after in one call
-                pair_gain[start:start + len(block)] = value[:, 1] - value[:, 0]
-                pixels[start:start + len(block)] = h[:, 0].sum(axis=1)
-        over_t = pair_gain - gain_thresholds(pixels, epsilon, epsilon_pixels)
-        result.evaluations += len(pairs)
-        touched: set[int] = set()
-        any_taken = False
-        for n in np.argsort(-over_t, kind="stable"):
-            if over_t[n] <= 0.0 or len(taken) + 2 > max_iterations:
-                break
-            i, j, k, ll, m_, p, r, _, r2 = pairs[n].tolist()
-            if touched & {i, j, k, ll, m_}:
-                continue  # scored on a mesh that has changed around it since
-            e, b = edge_key(i, j), edge_key(p, r)
-            q = mesh.quad(e)
-            added = mesh.swap(e, check=False)
-            qb = mesh.quad(b)
-            if {qb.k, qb.l} != {r2, m_} or eligible(b) is None:
-                mesh.swap(added, check=False)  # the pair's second swap is not there: undo
-                continue
-            move_hist(q)
-            retired.add(e)
-            delta = float(pair_gain[n])
-            record(e, added, delta, "pair")
-            move_hist(qb)
-            added_b = mesh.swap(b, check=False)
-            retired.add(b)
-            record(b, added_b, delta, "pair")
-            touched.update((i, j, k, ll, m_))
-            rescore([*q.boundary, *qb.boundary])
-            any_taken = True
-        return any_taken
-
-    while True:
-        while heap and best.get(heap[0][1]) != -heap[0][0]:
-            heapq.heappop(heap)
-        if not heap or -heap[0][0] <= 0.0:
-            if lookahead and take_pair():
-                continue
-            break
-        if len(taken) >= max_iterations:
-            stopped = "max_iterations reached"
-            break
-        _, e = heapq.heappop(heap)
-        del best[e]
-        positive -= 1  # it was the best, over its threshold
-        q = eligible(e)
-        if q is None:
-            # A swap elsewhere created, or retired, the edge this one would add.
-            continue
-        move_hist(q)
-        added = mesh.swap(e, check=False)
-        retired.add(e)
-        record(e, added, gain[e], "swap")
-        rescore(q.boundary)
-        if progress is not None and len(taken) % 16 == 0:
-            progress(len(taken) / (len(taken) + positive))
-    if taken:
-        r = np.array(moves)
-        table = cache.table
+    out = kernels.search_outputs()
+    moved = np.zeros(n, dtype=np.uint8)
+    while kernels.search_run(compiled, cache, search, state, moved, int(max_iterations),
+                             bool(lookahead), progress is not None, out, t0):
+        taken = int(state[kernels.STATE_TAKEN])
+        progress(taken / (taken + int(state[kernels.STATE_POSITIVE])))  # type: ignore[misc]
+    steps, times, moves, log = (np.asarray(list(o)) for o in out)
+    for code in log.tolist():
+        mesh.swap((code // n, code % n), check=False)
+    if len(steps):
+        table = hist_box[0]
+        r = moves.reshape(-1, 4)
         change = table[r[:, 2]].astype(np.int64) + table[r[:, 3]] - table[r[:, 0]] - table[r[:, 1]]
         snapshots = global_hist + np.cumsum(change, axis=0)
         global_hist = snapshots[-1]
-        step_mi, step_nmi = mutual_information(snapshots, images.bins)
-        for n, ((e, added, delta, move, elapsed), mi_n, nmi_n) in enumerate(
-            zip(taken, step_mi.tolist(), step_nmi.tolist(), strict=True)
+        step_mi, step_nmi = mutual_information(snapshots, bins)
+        for k, ((e, added, move), (delta, elapsed), mi_k, nmi_k) in enumerate(
+            zip(steps.tolist(), times.tolist(), step_mi.tolist(), step_nmi.tolist(), strict=True)
         ):
-            result.steps.append(SwapStep(iteration=n + 1, removed=e, added=added, delta=delta,
-                                         mi=mi_n, nmi=nmi_n, elapsed_s=elapsed, move=move))
-    result.final_mi, result.final_nmi = (
-        float(v) for v in mutual_information(global_hist, images.bins))
+            result.steps.append(SwapStep(
+                iteration=k + 1, removed=(e // n, e % n), added=(added // n, added % n),
+                delta=delta, mi=mi_k, nmi=nmi_k, elapsed_s=elapsed,
+                move="pair" if move else "swap"))
+    result.final_mi, result.final_nmi = (float(v) for v in mutual_information(global_hist, bins))
     result.histogram = global_hist
-    result.stopped_because = stopped
+    result.evaluations = int(state[kernels.STATE_EVALUATIONS])
+    result.stopped_because = kernels.SEARCH_STOPS[int(state[kernels.STATE_STOPPED])]
     return result

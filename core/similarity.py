@@ -247,7 +247,8 @@ def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndar
 
 
 @cache
-def _xlogx_table() -> np.ndarray:
+def xlogx_table() -> np.ndarray:
+    """``c log2 c`` of the counts below :data:`core.kernels.XLOGX_SIZE` (computed once)."""
     return kernels.xlogx_table(kernels.XLOGX_SIZE)
 
 
@@ -277,7 +278,7 @@ def summed_information(
     mi = np.empty(len(idx))
     nmi = np.empty(len(idx))
     pixels = np.empty(len(idx))
-    kernels.summed_information(hist, idx, bins, mi, nmi, pixels, _xlogx_table())
+    kernels.summed_information(hist, idx, bins, mi, nmi, pixels, xlogx_table())
     return mi.reshape(lead), nmi.reshape(lead), pixels.reshape(lead)
 
 

@@ -190,15 +190,17 @@ def test_gain_thresholds_follow_the_quad_size_within_bounds():
     assert np.all(gain_thresholds(n, 0.01, 0.0) == 0.01)  # the paper's fixed epsilon
 
 
-def test_one_gain_threshold_is_the_batched_one_bit_for_bit():
-    from pwlreg.core.optimize import gain_threshold, gain_thresholds
+def test_the_compiled_search_s_threshold_is_the_batched_one_bit_for_bit():
+    from pwlreg.core.kernels import gain_threshold
+    from pwlreg.core.optimize import THRESHOLD_RANGE, gain_thresholds
 
     rng = np.random.default_rng(0)
     pixels = np.concatenate([rng.integers(0, 200_000, 2000), [0, 1, 2, 249, 250, 251]])
     pixels = pixels.astype(np.float64)
     for epsilon, epsilon_pixels in ((0.01, 250.0), (0.013, 77.7), (0.01, 0.0)):
         batched = gain_thresholds(pixels, epsilon, epsilon_pixels).tolist()
-        assert [gain_threshold(p, epsilon, epsilon_pixels) for p in pixels.tolist()] == batched
+        assert [gain_threshold(p, epsilon, epsilon_pixels, *THRESHOLD_RANGE)
+                for p in pixels.tolist()] == batched
 
 
 def _pentagon_nmi(images, mesh, triangles):
@@ -271,10 +273,21 @@ def _pair_moves_loop(mesh, edges, allowed):
     return rows
 
 
+def _compiled_pairs(mesh, banned, near=None):
+    from pwlreg.core import kernels
+    from pwlreg.core.optimize import compiled_mesh
+
+    n = len(mesh.reference)
+    retired = kernels.empty_set()
+    for i, j in banned:
+        retired[i * n + j] = np.int8(1)
+    moved = np.zeros(n, dtype=np.uint8)
+    moved[list(near or ())] = 1
+    return kernels.pair_moves(compiled_mesh(mesh), retired, moved, near is not None)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_pair_moves_agree_with_the_loops(seed):
-    from pwlreg.core.optimize import pair_moves
-
     rng = np.random.default_rng(seed)
     ref = quantize(rng.uniform(0, 200, size=(60, 2)))
     mesh = Mesh(ref, ref + rng.normal(0, 8, size=ref.shape), Delaunay(ref).simplices)
@@ -285,19 +298,18 @@ def test_pair_moves_agree_with_the_loops(seed):
     # Edges the first swaps would create: retired, as the search retires swapped-away edges.
     banned = {(min(q.k, q.l), max(q.k, q.l)) for q in map(mesh.quad, edges[::5])}
     allowed = lambda e: (min(e), max(e)) not in banned  # noqa: E731
-    pairs = pair_moves(mesh, edges, banned)
+    pairs = _compiled_pairs(mesh, banned)
     assert len(pairs) > 20
     assert pairs.tolist() == [list(r) for r in _pair_moves_loop(mesh, edges, allowed)]
-    # The mesh's own swappable edges, all or near some vertices, found with the pairs.
-    np.testing.assert_array_equal(pair_moves(mesh, None, banned), pairs)
+    # Only the edges with an end among some vertices (those of quads changed since a pass).
     near = {3, 17, 40}
     nearby = [e for e in edges if e[0] in near or e[1] in near]
     assert nearby
-    np.testing.assert_array_equal(pair_moves(mesh, None, banned, near=near),
-                                  pair_moves(mesh, nearby, banned).reshape(-1, 9))
-    assert pair_moves(mesh, None, banned, near=set()).shape == (0, 9)
+    assert _compiled_pairs(mesh, banned, near).tolist() == [
+        list(r) for r in _pair_moves_loop(mesh, nearby, allowed)]
+    assert _compiled_pairs(mesh, banned, set()).shape == (0, 9)
     # Something retired: fewer pairs than without.
-    assert len(pair_moves(mesh, edges, set())) > len(pairs)
+    assert len(_compiled_pairs(mesh, set())) > len(pairs)
 
 
 def test_the_mi_after_vertex_moves_is_that_of_a_whole_pass():
