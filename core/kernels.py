@@ -903,10 +903,11 @@ def spaced(points, distance, count):  # type: ignore[no-untyped-def]
 # added first is first), which decides which apex is ``k`` and which slot a new triangle takes.
 #
 # The arguments travel in four tuples:
-# ``mesh = (tris, owners, ref_fixed, mov_fixed, n, reference, moving)``: the triangles by slot
-# (rows of -1 for empty slots), ``edge code -> packed owner slots`` (:func:`owners_dict`), the
-# fixed-point and the float vertices, ``n`` vertices; an edge ``(i, j)``, ``i < j``, has the
-# code ``i n + j``.
+# ``mesh = (tris, owners, ref_fixed, mov_fixed, n, reference, moving, stamps)``: the triangles
+# by slot (rows of -1 for empty slots), ``edge code -> packed owner slots``
+# (:func:`owners_dict`), the fixed-point and the float vertices, ``n`` vertices, the slots'
+# stamps (:meth:`core.mesh.Mesh.slot_triangles`); an edge ``(i, j)``, ``i < j``, has the code
+# ``i n + j``.
 # ``cache = (index, hist_box, mom_box, images, params, use_ncc, xtable)``: ``triangle key ->
 # row`` (the key of ``a < b < c`` is ``(a n + b) n + c``), the histogram and moment tables in
 # one-element lists (:func:`search_box`; they grow), the scoring images ``(reference bins,
@@ -928,6 +929,7 @@ SEARCH_STOPS = ("no swap raises the consistency by more than epsilon", "max_iter
 # The integer state: the cache rows used, the swaps taken, the edges over their threshold, the
 # gains scored, why it stopped, whether the look-ahead has begun noting changed vertices.
 STATE_USED, STATE_TAKEN, STATE_POSITIVE, STATE_EVALUATIONS, STATE_STOPPED, STATE_MOVED = range(6)
+STATE_STAMP = 6  # the next triangle's stamp
 
 #: Most vertices of a searched mesh: a triangle's key ``(a n + b) n + c`` must fit in int64.
 SEARCH_MAX_VERTICES = 2**21 - 1
@@ -940,9 +942,12 @@ PAIR_TRIANGLES = np.array([[0, 1, 2], [0, 1, 3], [5, 6, 4], [2, 3, 7], [8, 4, 5]
 _PACK = np.int64(1) << 32
 
 
-def search_state() -> np.ndarray:
-    """The integer state of a search that has not started."""
-    return np.zeros(6, dtype=np.int64)
+def search_state(next_stamp: int) -> np.ndarray:
+    """The integer state of a search that has not started on a mesh whose next triangle gets
+    the stamp ``next_stamp``."""
+    state = np.zeros(7, dtype=np.int64)
+    state[STATE_STAMP] = next_stamp
+    return state
 
 
 def owners_dict(codes: np.ndarray, owners: np.ndarray) -> Dict:
@@ -978,14 +983,13 @@ def search_box(array: np.ndarray) -> List:
     return out
 
 
-def search_outputs() -> tuple[List, List, List, List]:
+def search_outputs() -> tuple[List, List, List]:
     """The search's records: the accepted swaps ``(edge, new edge, kind: 0 alone, 1 in a
-    pair)``, their ``(gain, seconds)``, the cache rows of their quads ``(2 removed, 2 added)``,
-    and every swap made on the mesh in order (undone trials included), as edge codes."""
+    pair)``, their ``(gain, seconds)`` and the cache rows of their quads ``(2 removed, 2
+    added)``."""
     return (List.empty_list(types.UniTuple(types.int64, 3)),
             List.empty_list(types.UniTuple(types.float64, 2)),
-            List.empty_list(types.UniTuple(types.int64, 4)),
-            List.empty_list(types.int64))
+            List.empty_list(types.UniTuple(types.int64, 4)))
 
 
 @njit(cache=True)
@@ -1080,12 +1084,14 @@ def _drop(mesh, slot):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _add(mesh, slot, a, b, c):  # type: ignore[no-untyped-def]
+def _add(mesh, slot, a, b, c, state):  # type: ignore[no-untyped-def]
     """Store triangle ``(a, b, c)`` in ``slot``, positively oriented in the reference."""
-    tris, owners, ref_fixed, n = mesh[0], mesh[1], mesh[2], mesh[4]
+    tris, owners, ref_fixed, n, stamps = mesh[0], mesh[1], mesh[2], mesh[4], mesh[7]
     if _cross(ref_fixed, a, b, c) < 0:
         b, c = c, b
     tris[slot, 0], tris[slot, 1], tris[slot, 2] = a, b, c
+    stamps[slot] = state[STATE_STAMP]
+    state[STATE_STAMP] += 1
     for e in range(3):
         code = _edge(tris[slot, e], tris[slot, (e + 1) % 3], n)
         v = owners.get(code, -1)
@@ -1093,14 +1099,13 @@ def _add(mesh, slot, a, b, c):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _swap(mesh, code, log):  # type: ignore[no-untyped-def]
-    """:meth:`Mesh.swap` without the check, noted in ``log``; returns the new edge's code."""
+def _swap(mesh, code, state):  # type: ignore[no-untyped-def]
+    """:meth:`Mesh.swap` without the check; returns the new edge's code."""
     i, j, k, l, s0, s1 = _quad(mesh, code)  # noqa: E741
     _drop(mesh, s0)
     _drop(mesh, s1)
-    _add(mesh, s0, k, l, i)
-    _add(mesh, s1, k, l, j)
-    log.append(code)
+    _add(mesh, s0, k, l, i, state)
+    _add(mesh, s1, k, l, j, state)
     return _edge(k, l, mesh[4])
 
 
@@ -1410,7 +1415,6 @@ def _take_pairs(mesh, cache, search, state, moved, max_iterations, out,
     state[STATE_EVALUATIONS] += count
     touched = np.zeros(n, dtype=np.bool_)
     taken = False
-    log = out[3]
     for t in np.argsort(-over, kind="mergesort"):
         if over[t] <= 0.0 or state[STATE_TAKEN] + 2 > max_iterations:
             break
@@ -1420,17 +1424,17 @@ def _take_pairs(mesh, cache, search, state, moved, max_iterations, out,
             continue  # scored on a mesh that has changed around it since
         e, b = _edge(i, j, n), _edge(p, r, n)
         qi, qj, qk, ql, _, _ = _quad(mesh, e)
-        added = _swap(mesh, e, log)
+        added = _swap(mesh, e, state)
         bi, bj, bk, bl, _, _ = _quad(mesh, b)
         if not ((bk == r2 and bl == m) or (bk == m and bl == r2)) or not _eligible(
                 mesh, retired, b)[0]:
-            _swap(mesh, added, log)  # the pair's second swap is not there: undo
+            _swap(mesh, added, state)  # the pair's second swap is not there: undo
             continue
         _note_quad(qi, qj, qk, ql, mesh, cache, state, out)
         retired[e] = np.int8(1)
         _record(e, added, pair_gain[t], 1, mesh, moved, state, out, t0)
         _note_quad(bi, bj, bk, bl, mesh, cache, state, out)
-        added_b = _swap(mesh, b, log)
+        added_b = _swap(mesh, b, state)
         retired[b] = np.int8(1)
         _record(b, added_b, pair_gain[t], 1, mesh, moved, state, out, t0)
         touched[i] = touched[j] = touched[k] = touched[l] = touched[m] = True
@@ -1505,7 +1509,7 @@ def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, rep
         if not ok:
             continue  # a swap elsewhere created, or retired, the edge this one would add
         _note_quad(i, j, k, l, mesh, cache, state, out)
-        added = _swap(mesh, e, out[3])
+        added = _swap(mesh, e, state)
         retired[e] = np.int8(1)
         _record(e, added, gain[e], 0, mesh, moved, state, out, t0)
         _rescore(_boundary(i, j, k, l, n), mesh, cache, search, state)

@@ -12,6 +12,7 @@ with a single triangle is on the boundary.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from functools import cached_property
 from itertools import compress
 from typing import NamedTuple
 
@@ -104,13 +105,16 @@ class Mesh:
         self._rows = tris
         self._stamps = np.arange(len(tris))
         self._changed: list[int] = []
-        # Edges (a, b), (b, c), (c, a) of each triangle in turn, in the order _add files them.
-        second = tris[:, [1, 2, 0]]
-        lo, hi = np.minimum(tris, second).ravel(), np.maximum(tris, second).ravel()
-        slots = np.repeat(np.arange(len(tris)), 3)
-        self._edges: dict[Edge, list[int]] = {}
-        for e, slot in zip(zip(lo.tolist(), hi.tolist(), strict=True), slots.tolist(), strict=True):
-            self._edges.setdefault(e, []).append(slot)
+
+    @cached_property
+    def _edges(self) -> dict[Edge, list[int]]:
+        """Each edge's triangles (slots), in the order they were added; made when first asked
+        for (a mesh the compiled search alone works on never needs it)."""
+        n = len(self.reference)
+        edges: dict[Edge, list[int]] = {}
+        for c, slot in zip(*(a.tolist() for a in self._sides()), strict=True):
+            edges.setdefault((c // n, c % n), []).append(slot)
+        return edges
 
     # -- construction helpers ------------------------------------------------------------------
     def _oriented(self, a: int, b: int, c: int) -> tuple[int, int, int]:
@@ -218,7 +222,18 @@ class Mesh:
         """Fixed-point vertices of the reference and the moving mesh, ``(N, 2)`` int64 each."""
         return self._fixed_arrays
 
-    def edge_owners(self) -> tuple[np.ndarray, np.ndarray]:
+    def _sides(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each side of each live triangle as an edge code ``i * N + j`` with its slot, grouped
+        by edge (codes sorted), in a group the triangles in the order they were added (that
+        of _edges): two ``(3 T,)`` int64 arrays."""
+        n = len(self.reference)
+        slots, tris = self._live()
+        second = tris[:, [1, 2, 0]]
+        code = (np.minimum(tris, second) * n + np.maximum(tris, second)).ravel()
+        order = np.lexsort((np.repeat(self._stamps[slots], 3), code))
+        return code[order], np.repeat(slots, 3)[order]
+
+    def edge_owners(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every edge as a code ``i * N + j`` (``N`` vertices), sorted, and its triangles.
 
         Returns
@@ -226,22 +241,18 @@ class Mesh:
         codes : ndarray of int64, shape (E,)
             Sorted; :func:`numpy.searchsorted` finds an edge in it.
         owners : ndarray of int64, shape (E, 2)
-            Slots of the edge's first and second triangle, in the order they were added (that
-            of :meth:`quad`'s ``k`` and ``l``); -1 for the missing second one of a boundary edge.
+            Slots of an internal edge's two triangles, in the order they were added (that of
+            :meth:`quad`'s ``k`` and ``l``); of other edges the first, and -1.
+        counts : ndarray of int64, shape (E,)
+            Triangles of each edge (more than two where the mesh is not a manifold).
         """
-        n = len(self.reference)
-        slots, tris = self._live()
-        # Each side of each triangle with its slot, grouped by edge; in a group, the owners in
-        # the order they were added, which is their order in _edges.
-        second = tris[:, [1, 2, 0]]
-        code = (np.minimum(tris, second) * n + np.maximum(tris, second)).ravel()
-        order = np.lexsort((np.repeat(self._stamps[slots], 3), code))
-        code, owner = code[order], np.repeat(slots, 3)[order]
+        code, owner = self._sides()
         first = np.flatnonzero(np.diff(code, prepend=-1))
-        pair = np.diff(first, append=len(code)) == 2
+        counts = np.diff(first, append=len(code))
         owners = np.stack([owner[first], np.full(len(first), -1, dtype=np.int64)], axis=1)
+        pair = counts == 2
         owners[pair, 1] = owner[first[pair] + 1]
-        return code[first], owners
+        return code[first], owners, counts
 
     def edge_table(self) -> tuple[np.ndarray, np.ndarray]:
         """Every edge as a code ``i * N + j`` (``N`` vertices), sorted, and its apexes.
@@ -255,15 +266,26 @@ class Mesh:
             :meth:`quad`, in its order); -1 for the missing second one of a boundary edge.
         """
         n = len(self.reference)
-        codes, owners = self.edge_owners()
+        codes, owners, _ = self.edge_owners()
         ends = codes // n + codes % n
         apexes = np.where(owners >= 0, self._rows[owners].sum(axis=2) - ends[:, None], -1)
         return codes, apexes
 
-    def slot_triangles(self) -> np.ndarray:
-        """Triangles by slot, ``(S, 3)`` int64, rows of -1 for empty slots (a copy)."""
+    def slot_triangles(self) -> tuple[np.ndarray, np.ndarray]:
+        """Triangles by slot, ``(S, 3)`` int64 with rows of -1 for empty slots, and the order
+        they were added (stamps, ``(S,)``; it orders the owners of an edge): copies."""
         self._sync()
-        return self._rows.copy()
+        return self._rows.copy(), self._stamps.copy()
+
+    def take_triangles(self, rows: np.ndarray, stamps: np.ndarray) -> None:
+        """Replace the triangles by those of :meth:`slot_triangles` after a compiled search
+        swapped edges in them (:func:`core.kernels.search_run`), as if the swaps had been made
+        here (each triangle positively oriented in the reference, new ones stamped later)."""
+        self._rows = rows
+        self._stamps = stamps
+        self._changed.clear()
+        self._tris = [None if t[0] < 0 else (t[0], t[1], t[2]) for t in rows.tolist()]
+        self.__dict__.pop("_edges", None)
 
     def across(self, e: Edge, apex: int) -> int:
         """Vertex facing ``apex`` across internal edge ``e``, -1 if there is none.

@@ -367,13 +367,19 @@ def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -
     return np.clip(scaled, low * epsilon, high * epsilon)
 
 
-def compiled_mesh(mesh: Mesh, tris: np.ndarray | None = None) -> tuple:
+def compiled_mesh(mesh: Mesh) -> tuple:
     """The mesh as the compiled search holds it (:func:`core.kernels.search_run`): its
-    triangles by slot (``tris``, :meth:`Mesh.slot_triangles` if not given, which the search
-    changes in place), the owners of its edges, its fixed-point and float vertices."""
-    tris = mesh.slot_triangles() if tris is None else tris
-    return (tris, kernels.owners_dict(*mesh.edge_owners()), *mesh.fixed_arrays,
-            len(mesh.reference), mesh.reference, mesh.moving)
+    triangles by slot, the owners of its edges, its fixed-point and float vertices, the
+    slots' stamps (copies the search changes; :meth:`Mesh.take_triangles` takes them back)."""
+    tris, stamps = mesh.slot_triangles()
+    codes, owners, counts = mesh.edge_owners()
+    if len(counts) and counts.max() > 2:
+        n = len(mesh.reference)
+        c = int(codes[np.argmax(counts)])
+        raise ValueError(f"the search needs a manifold mesh: edge {(c // n, c % n)} has "
+                         f"{counts.max()} triangles")
+    return (tris, kernels.owners_dict(codes, owners), *mesh.fixed_arrays, len(mesh.reference),
+            mesh.reference, mesh.moving, stamps)
 
 
 def greedy_search(
@@ -433,13 +439,12 @@ def greedy_search(
         raise ValueError(f"the search takes meshes of at most {kernels.SEARCH_MAX_VERTICES} "
                          f"vertices, got {n}")
     bins = images.bins
-    tris = mesh.slot_triangles()
+    compiled = compiled_mesh(mesh)
     # Room for every triangle of the first pass and a few swaps' worth of new ones.
-    capacity = 4 * int(np.count_nonzero(tris[:, 0] >= 0)) + 256
+    capacity = 4 * mesh.n_triangles + 256
     with_moments = COSTS[cost].needs_moments
     hist_box = kernels.search_box(np.empty((capacity, bins * bins), dtype=np.int32))
     mom_box = kernels.search_box(np.empty((capacity if with_moments else 0, 6)))
-    compiled = compiled_mesh(mesh, tris)
     cache = (kernels.empty_index(), hist_box, mom_box,
              (images.reference_bins, images.reference_values, images.moving),
              (int(images.shape[1]), int(images.shape[0]), int(bins),
@@ -450,7 +455,7 @@ def greedy_search(
     search = (kernels.empty_scores(), kernels.empty_scores(), kernels.empty_heap(),
               kernels.empty_set(), float(epsilon), float(epsilon_pixels), float(low),
               float(high))
-    state = kernels.search_state()
+    state = kernels.search_state(int(compiled[7].max(initial=-1)) + 1)
     global_hist = np.zeros(bins * bins, dtype=np.int64)
     kernels.search_start(compiled, cache, search, state, global_hist)
     mi, nmi = (float(v) for v in mutual_information(global_hist, bins))
@@ -463,9 +468,8 @@ def greedy_search(
                              bool(lookahead), progress is not None, out, t0):
         taken = int(state[kernels.STATE_TAKEN])
         progress(taken / (taken + int(state[kernels.STATE_POSITIVE])))  # type: ignore[misc]
-    steps, times, moves, log = (np.asarray(list(o)) for o in out)
-    for code in log.tolist():
-        mesh.swap((code // n, code % n), check=False)
+    steps, times, moves = (np.asarray(list(o)) for o in out)
+    mesh.take_triangles(compiled[0], compiled[7])
     if len(steps):
         table = hist_box[0]
         r = moves.reshape(-1, 4)

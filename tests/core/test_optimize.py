@@ -1,3 +1,4 @@
+import copy
 from dataclasses import replace
 
 import cv2
@@ -248,6 +249,30 @@ def test_lookahead_pairs_gain_what_they_record_over_their_pentagon():
         assert gain == pytest.approx(first.delta, abs=1e-9)
         n += 2
     assert not replay.reversed_slots()
+
+
+def test_the_searched_mesh_is_the_one_its_swaps_make():
+    # The compiled search hands its triangles back to the Mesh at the end: they must be those
+    # the recorded swaps make, each a valid swap in turn, with the same owners for every edge.
+    scenes = pytest.importorskip("bench.scenes")
+    sc = scenes.make_scene("gable", 4, size=(640, 480), camera="affine",
+                           radiometric="nonmonotone", noise=2.0, blur=0.0, n_interior=40)
+    images = prepare_images(sc.reference, sc.moving, 16)
+    mesh, _ = initial_mesh(sc.points_reference, sc.points_moving, 25)
+    replay = copy.deepcopy(mesh)  # the same slots (Mesh.copy compacts them)
+    res = greedy_search(mesh, images, epsilon_pixels=250, lookahead=True)
+    assert len(res.steps) > 20 and any(s.move == "pair" for s in res.steps)
+    for s in res.steps:
+        assert replay.swap(s.removed) == s.added
+    assert mesh.slot_triangles()[0].tolist() == replay.slot_triangles()[0].tolist()
+    assert mesh.edges() == replay.edges()
+    assert all(sorted(mesh.edge_triangles(e)) == sorted(replay.edge_triangles(e))
+               for e in mesh.edges())
+    assert not mesh.reversed_slots()
+    # A second search (its retired edges forgotten) goes on from either mesh alike.
+    again = [greedy_search(m, images, epsilon_pixels=250, lookahead=True) for m in (mesh, replay)]
+    assert again[0].steps and [(s.removed, s.added, s.delta) for s in again[0].steps] == [
+        (s.removed, s.added, s.delta) for s in again[1].steps]
 
 
 def _pair_moves_loop(mesh, edges, allowed):
