@@ -967,8 +967,9 @@ def empty_scores() -> Dict:
 
 
 def empty_set() -> Dict:
-    """A typed set of edge codes (``code -> 1``)."""
-    return Dict.empty(types.int64, types.int8)
+    """A typed set of edge codes (``code -> 1``; the index's type: one type fewer to
+    compile)."""
+    return Dict.empty(types.int64, types.int64)
 
 
 def empty_heap() -> List:
@@ -983,13 +984,13 @@ def search_box(array: np.ndarray) -> List:
     return out
 
 
-def search_outputs() -> tuple[List, List, List]:
-    """The search's records: the accepted swaps ``(edge, new edge, kind: 0 alone, 1 in a
-    pair)``, their ``(gain, seconds)`` and the cache rows of their quads ``(2 removed, 2
-    added)``."""
-    return (List.empty_list(types.UniTuple(types.int64, 3)),
-            List.empty_list(types.UniTuple(types.float64, 2)),
-            List.empty_list(types.UniTuple(types.int64, 4)))
+def search_steps(capacity: int = 256) -> List:
+    """The search's record of accepted swaps (:func:`search_box`; it grows), a row each:
+    edge, new edge, kind (0 alone, 1 in a pair), gain, seconds since the start, and the cache
+    rows of the quad's two triangles before and two after. Every value is exact in float64
+    (codes and rows are far below 2**53); one array, not a typed list per column: each typed
+    container's type costs numba seconds to compile."""
+    return search_box(np.zeros((capacity, 9)))
 
 
 @njit(cache=True)
@@ -1329,12 +1330,13 @@ def _now():  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def _record(code, added, delta, move, mesh, moved, state, out, t0):  # type: ignore[no-untyped-def]
-    """Note an accepted swap: its edges, gain, kind (0 alone, 1 in a pair) and time."""
+    """Note an accepted swap (its quad noted first): its edges, gain, kind (0 alone, 1 in a
+    pair) and time."""
     n = mesh[4]
     if state[STATE_MOVED]:
         moved[code // n] = moved[code % n] = moved[added // n] = moved[added % n] = 1
-    out[0].append((code, added, move))
-    out[1].append((delta, _now() - t0))
+    row = out[0][state[STATE_TAKEN]]
+    row[0], row[1], row[2], row[3], row[4] = code, added, move, delta, _now() - t0
     state[STATE_TAKEN] += 1
 
 
@@ -1343,7 +1345,15 @@ def _note_quad(i, j, k, l, mesh, cache, state, out):  # type: ignore[no-untyped-
     """Note the cache rows of a quad about to be swapped: the global histogram's change."""
     tri = np.array([[i, j, k], [i, j, l], [k, l, i], [k, l, j]], dtype=np.int64)
     rows = _cache_rows(tri, mesh, cache, state)
-    out[2].append((rows[0], rows[1], rows[2], rows[3]))
+    steps = out[0]
+    taken = state[STATE_TAKEN]
+    if taken >= steps.shape[0]:
+        grown = np.zeros((2 * steps.shape[0] + 16, steps.shape[1]))
+        grown[:taken] = steps[:taken]
+        out[0] = grown
+        steps = grown
+    steps[taken, 5], steps[taken, 6], steps[taken, 7], steps[taken, 8] = (
+        rows[0], rows[1], rows[2], rows[3])
 
 
 @njit(cache=True)
@@ -1431,11 +1441,11 @@ def _take_pairs(mesh, cache, search, state, moved, max_iterations, out,
             _swap(mesh, added, state)  # the pair's second swap is not there: undo
             continue
         _note_quad(qi, qj, qk, ql, mesh, cache, state, out)
-        retired[e] = np.int8(1)
+        retired[e] = 1
         _record(e, added, pair_gain[t], 1, mesh, moved, state, out, t0)
         _note_quad(bi, bj, bk, bl, mesh, cache, state, out)
         added_b = _swap(mesh, b, state)
-        retired[b] = np.int8(1)
+        retired[b] = 1
         _record(b, added_b, pair_gain[t], 1, mesh, moved, state, out, t0)
         touched[i] = touched[j] = touched[k] = touched[l] = touched[m] = True
         _rescore(np.concatenate((_boundary(qi, qj, qk, ql, n), _boundary(bi, bj, bk, bl, n))),
@@ -1484,7 +1494,7 @@ def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, rep
     after :func:`search_start`.
 
     ``moved`` flags per vertex those of quads changed since the last pass of pairs; ``out`` is
-    :func:`search_outputs`; ``t0`` the search's start (:func:`time.perf_counter`). Returns True
+    :func:`search_steps`; ``t0`` the search's start (:func:`time.perf_counter`). Returns True
     when it stopped to report progress (``report``, every 16 swaps): call it again to go on.
     ``state[STATE_STOPPED]`` indexes :data:`SEARCH_STOPS`.
     """
@@ -1510,7 +1520,7 @@ def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, rep
             continue  # a swap elsewhere created, or retired, the edge this one would add
         _note_quad(i, j, k, l, mesh, cache, state, out)
         added = _swap(mesh, e, state)
-        retired[e] = np.int8(1)
+        retired[e] = 1
         _record(e, added, gain[e], 0, mesh, moved, state, out, t0)
         _rescore(_boundary(i, j, k, l, n), mesh, cache, search, state)
         if report and state[STATE_TAKEN] % 16 == 0:

@@ -446,7 +446,10 @@ def greedy_search(
     hist_box = kernels.search_box(np.empty((capacity, bins * bins), dtype=np.int32))
     mom_box = kernels.search_box(np.empty((capacity if with_moments else 0, 6)))
     cache = (kernels.empty_index(), hist_box, mom_box,
-             (images.reference_bins, images.reference_values, images.moving),
+             # 16-bit levels whatever the images' (the same values): one compiled search for
+             # 8- and 16-bit images, not two (a cold numba cache compiles each for 20 s).
+             (images.reference_bins, images.reference_values.astype(np.uint16, copy=False),
+              images.moving.astype(np.uint16, copy=False)),
              (int(images.shape[1]), int(images.shape[0]), int(bins),
               float(images.moving_bin_offset), float(images.moving_bin_scale),
               float(images.reference_scale), float(images.moving_scale)),
@@ -462,24 +465,25 @@ def greedy_search(
     result = SearchResult(initial_mi=mi, initial_nmi=nmi)
     if progress is not None:
         progress(0.0)
-    out = kernels.search_outputs()
+    out = kernels.search_steps()
     moved = np.zeros(n, dtype=np.uint8)
     while kernels.search_run(compiled, cache, search, state, moved, int(max_iterations),
                              bool(lookahead), progress is not None, out, t0):
         taken = int(state[kernels.STATE_TAKEN])
         progress(taken / (taken + int(state[kernels.STATE_POSITIVE])))  # type: ignore[misc]
-    steps, times, moves = (np.asarray(list(o)) for o in out)
     mesh.take_triangles(compiled[0], compiled[7])
+    steps = out[0][:int(state[kernels.STATE_TAKEN])]
     if len(steps):
         table = hist_box[0]
-        r = moves.reshape(-1, 4)
+        r = steps[:, 5:].astype(np.int64)
         change = table[r[:, 2]].astype(np.int64) + table[r[:, 3]] - table[r[:, 0]] - table[r[:, 1]]
         snapshots = global_hist + np.cumsum(change, axis=0)
         global_hist = snapshots[-1]
         step_mi, step_nmi = mutual_information(snapshots, bins)
-        for k, ((e, added, move), (delta, elapsed), mi_k, nmi_k) in enumerate(
-            zip(steps.tolist(), times.tolist(), step_mi.tolist(), step_nmi.tolist(), strict=True)
+        for k, (row, mi_k, nmi_k) in enumerate(
+            zip(steps[:, :5].tolist(), step_mi.tolist(), step_nmi.tolist(), strict=True)
         ):
+            e, added, move, delta, elapsed = int(row[0]), int(row[1]), row[2], row[3], row[4]
             result.steps.append(SwapStep(
                 iteration=k + 1, removed=(e // n, e % n), added=(added // n, added % n),
                 delta=delta, mi=mi_k, nmi=nmi_k, elapsed_s=elapsed,

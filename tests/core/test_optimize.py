@@ -305,7 +305,7 @@ def _compiled_pairs(mesh, banned, near=None):
     n = len(mesh.reference)
     retired = kernels.empty_set()
     for i, j in banned:
-        retired[i * n + j] = np.int8(1)
+        retired[i * n + j] = 1
     moved = np.zeros(n, dtype=np.uint8)
     moved[list(near or ())] = 1
     return kernels.pair_moves(compiled_mesh(mesh), retired, moved, near is not None)
