@@ -58,8 +58,8 @@ def forward_backward_error(forward: np.ndarray, backward: np.ndarray) -> np.ndar
     """Per pixel, how far the backward flow at the forward flow's end misses the start
     (pixels, float32 ``(H, W)``): near 0 where the flow is trustworthy."""
     h, w = forward.shape[:2]
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    end_x, end_y = xx + forward[..., 0], yy + forward[..., 1]
+    end_x = forward[..., 0] + np.arange(w, dtype=np.float32)
+    end_y = forward[..., 1] + np.arange(h, dtype=np.float32)[:, None]
     back = [cv2.remap(np.ascontiguousarray(backward[..., k]), end_x, end_y, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_REPLICATE) for k in (0, 1)]
     return np.hypot(forward[..., 0] + back[0], forward[..., 1] + back[1])

@@ -492,6 +492,7 @@ def match_lk(
     win: int = 21,
     levels: int = 3,
     prior: np.ndarray | None = None,
+    equalized: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Matches:
     """Harris corners tracked by pyramidal Lucas-Kanade with a forward-backward check.
 
@@ -515,14 +516,16 @@ def match_lk(
         LK window side (pixels) and number of pyramid levels above full resolution.
     prior : np.ndarray, optional
         (3, 3) homography reference -> moving (full-resolution pixels) to start from.
+    equalized : (np.ndarray, np.ndarray), optional
+        Both images through ``cv2.equalizeHist``, if the caller has them already.
 
     Returns
     -------
     Matches
         ``source="lk"``; score = Harris rank (strongest highest).
     """
-    a = cv2.equalizeHist(ref_gray)
-    b = cv2.equalizeHist(mov_gray)
+    a, b = equalized if equalized is not None else (cv2.equalizeHist(ref_gray),
+                                                    cv2.equalizeHist(mov_gray))
     # The corners do not depend on the prior: found on a second thread while it is tracked
     # (OpenCV lets go of the GIL; the prior's tracking keeps two cores only partly busy).
     with ThreadPoolExecutor(max_workers=1) as pool:
@@ -838,12 +841,12 @@ def _automatic(
     candidates = int(min(max(3 * options.max_points, 500), 60_000))
     seed = options.seed
 
-    def lk(prior: np.ndarray | None = None) -> Matches:
-        return match_lk(
-            ref_gray, mov_gray, candidates, options.min_distance, seed=seed, prior=prior
-        )
-
     images = (cv2.equalizeHist(ref_gray), cv2.equalizeHist(mov_gray))
+
+    def lk(prior: np.ndarray | None = None) -> Matches:
+        return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=seed,
+                        prior=prior, equalized=images)
+
     if options.matcher == "lk":
         result = _try_filter(lk(), options, images)
     elif options.matcher == "sift":

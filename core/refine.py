@@ -39,7 +39,7 @@ from pwlreg.core.flow import residual_flows
 from pwlreg.core.kernels import spaced, strip_correlation
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
-from pwlreg.core.reliability import neighbour_outliers, uniqueness
+from pwlreg.core.reliability import check_scales, neighbour_outliers, uniqueness
 from pwlreg.core.similarity import (
     ScoringImages,
     from_level,
@@ -304,12 +304,14 @@ def guided_pairs(
     points, residual = points[order], residual[order]
     found: list[Insertion] = []
     start = 0
+    # The registered image is the moving one seen through the mesh: the correlation check
+    # compares patches with almost no distortion there.
+    scales = check_scales(ref_l, registered)
     while start < len(points) and budget > 0:
         part = slice(start, start + 2 * budget)
         start = part.stop
-        # The registered image is the moving one seen through the mesh: the correlation check
-        # compares patches with almost no distortion there.
-        check = uniqueness(ref_l, registered, points[part], points[part] + residual[part], None)
+        check = uniqueness(ref_l, registered, points[part], points[part] + residual[part], None,
+                           scales=scales)
         counts["unique"] += int(check.ok.sum())
         if not check.ok.any():
             continue

@@ -137,12 +137,27 @@ def _check_scale(
     return best, ratio, dist, flat
 
 
+def check_scales(ref_gray: np.ndarray, warped: np.ndarray) -> list[tuple]:
+    """The scales :func:`uniqueness` correlates on: ``(reference, warped moving, scale,
+    template, radius)``, the images themselves and a coarse pyramid level. A caller that
+    checks several batches of pairs on the same images makes them once."""
+    levels = [(ref_gray, warped, 1.0, FINE_TEMPLATE, FINE_RADIUS)]
+    a, b, scale = ref_gray, warped, 1.0
+    while max(a.shape) > COARSE_SIDE or scale == 1.0:
+        for _ in range(2):
+            a, b, scale = cv2.pyrDown(a), cv2.pyrDown(b), scale / 2
+        levels.append((a, b, scale, COARSE_TEMPLATE, COARSE_RADIUS))
+    return levels
+
+
 def uniqueness(
     ref_gray: np.ndarray,
     mov_gray: np.ndarray,
     reference: np.ndarray,
     moving: np.ndarray,
     homography: np.ndarray | None,
+    *,
+    scales: list[tuple] | None = None,
 ) -> UniquenessResult:
     """Correlation check of conjugate pairs on a fine and a coarse scale.
 
@@ -162,6 +177,9 @@ def uniqueness(
         Pairs in pixels of each image.
     homography : ndarray, shape (3, 3), optional
         ``x_mov ~ H x_ref``; the identity when None.
+    scales : list, optional
+        :func:`check_scales` of ``ref_gray`` and the moving image resampled by
+        ``homography``, if the caller has them.
 
     Returns
     -------
@@ -173,24 +191,20 @@ def uniqueness(
     n = len(ref_pts)
     H = np.eye(3) if homography is None else np.asarray(homography, dtype=np.float64)
     h, w = ref_gray.shape
-    if homography is None and mov_gray.shape == (h, w):
-        warped = mov_gray  # what the identity warp returns, without its copy
-    else:
-        warped = cv2.warpPerspective(
-            mov_gray, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
-        )
+    if scales is None:
+        if homography is None and mov_gray.shape == (h, w):
+            warped = mov_gray  # what the identity warp returns, without its copy
+        else:
+            warped = cv2.warpPerspective(
+                mov_gray, H, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+            )
+        scales = check_scales(ref_gray, warped)
     q = np.column_stack([mov_pts, np.ones(n)]) @ np.linalg.inv(H).T
     with np.errstate(divide="ignore", invalid="ignore"):
         pred = q[:, :2] / q[:, 2:3]
     pred = np.where(np.isfinite(pred), pred, -1e6)
-
-    levels = [(ref_gray, warped, 1.0, FINE_TEMPLATE, FINE_RADIUS)]
-    a, b, scale = ref_gray, warped, 1.0
-    while max(a.shape) > COARSE_SIDE or scale == 1.0:
-        for _ in range(2):
-            a, b, scale = cv2.pyrDown(a), cv2.pyrDown(b), scale / 2
-        levels.append((a, b, scale, COARSE_TEMPLATE, COARSE_RADIUS))
+    levels = scales
     checked = np.zeros(n, bool)
     flat = np.zeros(n, bool)
     disagree = np.zeros(n, bool)
