@@ -919,9 +919,11 @@ def spaced(points, distance, count):  # type: ignore[no-untyped-def]
 # threshold's parameters (:func:`core.optimize.gain_thresholds`).
 # ``state``: the integer state (``STATE_*``).
 
-#: Batches of this many triangles or more take the histogram kernel's threaded form (the
-#: histograms are the same either way).
-SEARCH_PARALLEL = 64
+#: Batches of at least this many triangles are shared among numba's threads (its
+#: ``NUMBA_NUM_THREADS``; the service's workers set it to their ``worker_threads``); the few
+#: triangles a swap rescores are not worth a thread launch. The histograms are the same either
+#: way.
+PARALLEL_TRIANGLES = 64
 
 #: Why a search stopped, by the index :func:`search_run` leaves in ``state[STATE_STOPPED]``.
 SEARCH_STOPS = ("no swap raises the consistency by more than epsilon", "max_iterations reached")
@@ -1172,7 +1174,7 @@ def _cache_rows(tri, mesh, cache, state):  # type: ignore[no-untyped-def]
         out_m[:] = 0.0
     ref_bins, ref_values, moving_image = images
     width, height, bins, bin_offset, bin_scale, ref_scale, mov_scale = params
-    if m >= SEARCH_PARALLEL:
+    if m >= PARALLEL_TRIANGLES:
         triangle_histograms_parallel(ref_tris, mov_tris, ref_bins, ref_values, moving_image,
                                      width, height, bins, bin_offset, bin_scale, ref_scale,
                                      mov_scale, out, out_m)

@@ -20,10 +20,8 @@ import numpy as np
 from pwlreg.core import kernels
 from pwlreg.core.imaging import max_value, to_gray
 
-#: Batches of at least this many triangles are shared among numba's threads (its
-#: ``NUMBA_NUM_THREADS``; the service's workers set it to their ``worker_threads``); the few
-#: triangles a swap rescores are not worth a thread launch.
-PARALLEL_TRIANGLES = 64
+#: :data:`core.kernels.PARALLEL_TRIANGLES`, which the compiled search uses too.
+PARALLEL_TRIANGLES = kernels.PARALLEL_TRIANGLES
 
 MOMENTS = ("n", "sum_a", "sum_b", "sum_aa", "sum_bb", "sum_ab")
 """Order of the per-triangle moments (a: reference grey level, b: resampled moving level)."""
