@@ -447,8 +447,11 @@ def greedy_search(
     mom_box = kernels.search_box(np.empty((capacity if with_moments else 0, 6)))
     cache = (kernels.empty_index(), hist_box, mom_box,
              # 16-bit levels whatever the images' (the same values): one compiled search for
-             # 8- and 16-bit images, not two (a cold numba cache compiles each for 20 s).
-             (images.reference_bins, images.reference_values.astype(np.uint16, copy=False),
+             # 8- and 16-bit images, not two (a cold numba cache compiles each for 20 s). The
+             # reference's levels are read for the moments only (NCC).
+             (images.reference_bins,
+              images.reference_values.astype(np.uint16, copy=False) if with_moments
+              else np.zeros(1, dtype=np.uint16),
               images.moving.astype(np.uint16, copy=False)),
              (int(images.shape[1]), int(images.shape[0]), int(bins),
               float(images.moving_bin_offset), float(images.moving_bin_scale),
