@@ -276,7 +276,7 @@ def test_the_searched_mesh_is_the_one_its_swaps_make():
 
 
 def _pair_moves_loop(mesh, edges, allowed):
-    """pair_moves written as the loops of its docstring (the vectorized one must agree)."""
+    """pair_moves written as the loops of its docstring (the compiled one must agree)."""
     rows = []
     for e in edges:
         q = mesh.quad(e)
