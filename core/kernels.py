@@ -888,6 +888,44 @@ def spaced(points, distance, count):  # type: ignore[no-untyped-def]
                 break
     return keep[:kept]
 
+@njit(cache=True, error_model="numpy")
+def containing(vertices, tris, points, out):  # type: ignore[no-untyped-def]
+    """Index of the first triangle of ``tris`` (T, 3) whose barycentric test holds for each of
+    ``points`` (K, 2), into ``out`` (K,), -1 for none. The same float64 operations as the
+    numpy form it replaced (IEEE results where a degenerate triangle divides by 0), which
+    tested every point against every triangle: 26 x slower on 300 points and 800 triangles."""
+    n_tri = tris.shape[0]
+    ax = np.empty(n_tri)
+    ay = np.empty(n_tri)
+    v0x = np.empty(n_tri)
+    v0y = np.empty(n_tri)
+    v1x = np.empty(n_tri)
+    v1y = np.empty(n_tri)
+    d00 = np.empty(n_tri)
+    d01 = np.empty(n_tri)
+    d11 = np.empty(n_tri)
+    den = np.empty(n_tri)
+    for t in range(n_tri):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ax[t], ay[t] = vertices[a, 0], vertices[a, 1]
+        v0x[t], v0y[t] = vertices[c, 0] - ax[t], vertices[c, 1] - ay[t]
+        v1x[t], v1y[t] = vertices[b, 0] - ax[t], vertices[b, 1] - ay[t]
+        d00[t] = v0x[t] * v0x[t] + v0y[t] * v0y[t]
+        d01[t] = v0x[t] * v1x[t] + v0y[t] * v1y[t]
+        d11[t] = v1x[t] * v1x[t] + v1y[t] * v1y[t]
+        den[t] = d00[t] * d11[t] - d01[t] * d01[t]
+    for k in range(points.shape[0]):
+        out[k] = -1
+        for t in range(n_tri):
+            v2x, v2y = points[k, 0] - ax[t], points[k, 1] - ay[t]
+            d20 = v2x * v0x[t] + v2y * v0y[t]
+            d21 = v2x * v1x[t] + v2y * v1y[t]
+            u = (d11[t] * d20 - d01[t] * d21) / den[t]
+            v = (d00[t] * d21 - d01[t] * d20) / den[t]
+            if u >= 0 and v >= 0 and u + v <= 1:
+                out[k] = t
+                break
+
 # --- the greedy edge-swap search ------------------------------------------------------------------
 #
 # The body of :func:`core.optimize.greedy_search`. The search is sequential: every swap changes

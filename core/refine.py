@@ -36,7 +36,7 @@ from pwlreg.core.epipolar import (
     on_level,
 )
 from pwlreg.core.flow import residual_flows
-from pwlreg.core.kernels import spaced, strip_correlation
+from pwlreg.core.kernels import containing, spaced, strip_correlation
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.reliability import check_scales, neighbour_outliers, uniqueness
@@ -404,26 +404,11 @@ def _raises_mi(
 
 def _containing(vertices: np.ndarray, tris: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Index of a triangle containing each point (barycentric test; the first in ``tris``
-    order), -1 for none."""
-    a, b, c = (vertices[tris[:, k]] for k in range(3))
-    v0, v1 = c - a, b - a
-    d00 = (v0 * v0).sum(1)
-    d01 = (v0 * v1).sum(1)
-    d11 = (v1 * v1).sum(1)
-    den = d00 * d11 - d01 * d01
-    out = np.full(len(points), -1, dtype=np.int64)
-    # Points by blocks, so that a block's tests against every triangle stay near a million.
-    step = max(1, 1_000_000 // max(len(tris), 1))
-    for start in range(0, len(points), step):
-        v2 = points[start:start + step, None, :] - a[None]
-        d20 = (v2 * v0).sum(2)
-        d21 = (v2 * v1).sum(2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = (d11 * d20 - d01 * d21) / den
-            v = (d00 * d21 - d01 * d20) / den
-        hit = (u >= 0) & (v >= 0) & (u + v <= 1)
-        first = hit.argmax(axis=1)
-        out[start:start + step] = np.where(hit.any(axis=1), first, -1)
+    order), -1 for none (:func:`core.kernels.containing`)."""
+    out = np.empty(len(points), dtype=np.int64)
+    containing(np.ascontiguousarray(vertices, dtype=np.float64),
+               np.ascontiguousarray(tris, dtype=np.int64).reshape(-1, 3),
+               np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2), out)
     return out
 
 

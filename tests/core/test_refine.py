@@ -414,3 +414,42 @@ def test_step_pairs_lower_the_error_of_a_mesh_across_depth_steps() -> None:
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     err = np.hypot(mx - (xx - disparity), my - yy)[label >= 0]
     assert np.mean(err) < 0.5, np.mean(err)
+
+
+def _containing_numpy(vertices, tris, points):
+    """The numpy form the compiled point location replaced: every point against every
+    triangle, the first that holds it."""
+    a, b, c = (vertices[tris[:, k]] for k in range(3))
+    v0, v1 = c - a, b - a
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    den = d00 * d11 - d01 * d01
+    v2 = points[:, None, :] - a[None]
+    d20, d21 = (v2 * v0).sum(2), (v2 * v1).sum(2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = (d11 * d20 - d01 * d21) / den
+        v = (d00 * d21 - d01 * d20) / den
+    hit = (u >= 0) & (v >= 0) & (u + v <= 1)
+    return np.where(hit.any(axis=1), hit.argmax(axis=1), -1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_point_location_is_the_numpy_one(seed: int) -> None:
+    from scipy.spatial import Delaunay
+
+    from pwlreg.core.raster import quantize
+    from pwlreg.core.refine import _containing
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(3, 300))
+    v = quantize(rng.uniform(0, 200, (n, 2)))
+    if seed % 2:  # collinear vertices and shared coordinates
+        v = np.unique(np.round(v / 10) * 10, axis=0)
+        n = len(v)
+    tris = Delaunay(v).simplices
+    # Degenerate and overlapping triangles too, and points on vertices and on edges.
+    tris = np.concatenate([tris, rng.integers(0, n, (4, 3))])
+    pts = np.concatenate([quantize(rng.uniform(-10, 210, (150, 2))), v[rng.integers(0, n, 10)],
+                          (v[tris[:8, 0]] + v[tris[:8, 1]]) / 2])
+    got = _containing(v, tris, pts)
+    assert (got >= 0).sum() > 100
+    np.testing.assert_array_equal(got, _containing_numpy(v, tris, pts))
