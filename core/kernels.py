@@ -1268,9 +1268,18 @@ def _values(rows, cache):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _score_quads(quads, mesh, cache, state):  # type: ignore[no-untyped-def]
-    """Gain of swapping each quad ``(i, j, k, l)`` of ``quads`` (E, 4) and its pixel count
-    (:meth:`core.optimize.QuadScorer.quad_deltas`)."""
+def _gains(tri, side, mesh, cache, state):  # type: ignore[no-untyped-def]
+    """Gain (after minus before) of each move whose ``side`` triangles before and ``side``
+    after are consecutive rows of ``tri``, and the pixel count of its triangles."""
+    rows = _cache_rows(tri, mesh, cache, state)
+    value, pixels = _values(rows.reshape(-1, side), cache)  # before, after, ...
+    return value[1::2] - value[0::2], pixels[0::2]
+
+
+@njit(cache=True)
+def _quad_triangles(quads):  # type: ignore[no-untyped-def]
+    """Each quad's ``(i, j, k), (i, j, l)`` (before the swap) and ``(k, l, i), (k, l, j)``
+    (after), ``(4 E, 3)``, of quads ``(i, j, k, l)`` (E, 4)."""
     e = quads.shape[0]
     tri = np.empty((4 * e, 3), dtype=np.int64)
     for q in range(e):
@@ -1279,14 +1288,14 @@ def _score_quads(quads, mesh, cache, state):  # type: ignore[no-untyped-def]
         tri[4 * q + 1, 0], tri[4 * q + 1, 1], tri[4 * q + 1, 2] = i, j, l
         tri[4 * q + 2, 0], tri[4 * q + 2, 1], tri[4 * q + 2, 2] = k, l, i
         tri[4 * q + 3, 0], tri[4 * q + 3, 1], tri[4 * q + 3, 2] = k, l, j
-    rows = _cache_rows(tri, mesh, cache, state)
-    value, pixels = _values(rows.reshape(2 * e, 2), cache)  # before, after
-    gains = np.empty(e)
-    counts = np.empty(e)
-    for q in range(e):
-        gains[q] = value[2 * q + 1] - value[2 * q]
-        counts[q] = pixels[2 * q]
-    return gains, counts, rows
+    return tri
+
+
+@njit(cache=True)
+def _score_quads(quads, mesh, cache, state):  # type: ignore[no-untyped-def]
+    """Gain of swapping each quad ``(i, j, k, l)`` of ``quads`` (E, 4) and its pixel count
+    (:meth:`core.optimize.QuadScorer.quad_deltas`)."""
+    return _gains(_quad_triangles(quads), 2, mesh, cache, state)
 
 
 @njit(cache=True)
@@ -1383,8 +1392,8 @@ def _record(code, added, delta, move, mesh, moved, state, out, t0):  # type: ign
 @njit(cache=True)
 def _note_quad(i, j, k, l, mesh, cache, state, out):  # type: ignore[no-untyped-def]  # noqa: E741
     """Note the cache rows of a quad about to be swapped: the global histogram's change."""
-    tri = np.array([[i, j, k], [i, j, l], [k, l, i], [k, l, j]], dtype=np.int64)
-    rows = _cache_rows(tri, mesh, cache, state)
+    rows = _cache_rows(_quad_triangles(np.array([[i, j, k, l]], dtype=np.int64)), mesh, cache,
+                       state)
     steps = out[0]
     taken = state[STATE_TAKEN]
     if taken >= steps.shape[0]:
@@ -1420,7 +1429,7 @@ def _rescore(edges, mesh, cache, search, state):  # type: ignore[no-untyped-def]
             count += 1
     if count == 0:
         return
-    gains, pixels, _ = _score_quads(quads[:count], mesh, cache, state)
+    gains, pixels = _score_quads(quads[:count], mesh, cache, state)
     for q in range(count):
         d = gains[q] - _threshold(pixels[q], search)
         best[ring[q]] = d
@@ -1455,13 +1464,10 @@ def _take_pairs(mesh, cache, search, state, moved, max_iterations, out,
         for s in range(6):
             for c in range(3):
                 tri[6 * t + s, c] = pairs[t, PAIR_TRIANGLES[s, c]]
-    rows = _cache_rows(tri, mesh, cache, state)
-    value, pixels = _values(rows.reshape(2 * count, 3), cache)  # before, after
-    pair_gain = np.empty(count)
+    pair_gain, pixels = _gains(tri, 3, mesh, cache, state)
     over = np.empty(count)
     for t in range(count):
-        pair_gain[t] = value[2 * t + 1] - value[2 * t]
-        over[t] = pair_gain[t] - _threshold(pixels[2 * t], search)
+        over[t] = pair_gain[t] - _threshold(pixels[t], search)
     state[STATE_EVALUATIONS] += count
     touched = np.zeros(n, dtype=np.bool_)
     taken = False
@@ -1511,7 +1517,7 @@ def search_start(mesh, cache, search, state, global_hist):  # type: ignore[no-un
             quads[count, 0], quads[count, 1], quads[count, 2], quads[count, 3] = i, j, k, l
             candidates[count] = code
             count += 1
-    gains, pixels, _ = _score_quads(quads[:count], mesh, cache, state)
+    gains, pixels = _score_quads(quads[:count], mesh, cache, state)
     hist = cache[1][0]
     for r in current:
         for c in range(hist.shape[1]):

@@ -86,14 +86,7 @@ class SearchResult:
 
 
 def _triple(t: Iterable[int]) -> Triple:
-    a, b, c = t
-    # Three compares, not sorted(): the search sorts tens of thousands of triples one by one.
-    if a > b:
-        a, b = b, a
-    if b > c:
-        b, c = c, b
-        if a > b:
-            a, b = b, a
+    a, b, c = sorted(t)
     return (a, b, c)
 
 
@@ -291,11 +284,13 @@ class Cost:
     (None unless ``needs_moments``) and returns ``(...)`` values, larger is more consistent.
     ``summed(table, rows, bins)``, if given, returns ``measure`` of the sums
     ``table[rows].sum(axis=-2)`` and their pixel counts, the same values without gathering the
-    rows (the search's hot path).
+    rows. ``compiled`` names the same measure in the compiled search
+    (:func:`core.kernels.search_run`): ``"nmi"`` or ``"ncc"``.
     """
 
     needs_moments: bool
     measure: Callable[[np.ndarray, np.ndarray | None, int], np.ndarray]
+    compiled: str
     summed: Callable[[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]] | None = None
 
 
@@ -305,8 +300,9 @@ def _summed_nmi(table: np.ndarray, rows: np.ndarray, bins: int) -> tuple[np.ndar
 
 
 COSTS: dict[str, Cost] = {
-    "mi": Cost(False, lambda hist, moments, bins: mutual_information(hist, bins)[1], _summed_nmi),
-    "ncc": Cost(True, lambda hist, moments, bins: ncc(moments)),
+    "mi": Cost(False, lambda hist, moments, bins: mutual_information(hist, bins)[1], "nmi",
+               _summed_nmi),
+    "ncc": Cost(True, lambda hist, moments, bins: ncc(moments), "ncc"),
 }
 """Cost name (value of ``options.cost``) -> measure: NMI (the paper) or NCC."""
 
@@ -456,7 +452,7 @@ def greedy_search(
              (int(images.shape[1]), int(images.shape[0]), int(bins),
               float(images.moving_bin_offset), float(images.moving_bin_scale),
               float(images.reference_scale), float(images.moving_scale)),
-             with_moments, xlogx_table())
+             COSTS[cost].compiled == "ncc", xlogx_table())
     low, high = THRESHOLD_RANGE
     search = (kernels.empty_scores(), kernels.empty_scores(), kernels.empty_heap(),
               kernels.empty_set(), float(epsilon), float(epsilon_pixels), float(low),

@@ -212,11 +212,16 @@ def _pentagon_nmi(images, mesh, triangles):
     return float(mutual_information(hist.sum(axis=0), images.bins)[1])
 
 
-def test_lookahead_pairs_gain_what_they_record_over_their_pentagon():
+def _gable():
+    """A scene whose search needs pairs of swaps: its images and points."""
     scenes = pytest.importorskip("bench.scenes")
     sc = scenes.make_scene("gable", 4, size=(640, 480), camera="affine",
                            radiometric="nonmonotone", noise=2.0, blur=0.0, n_interior=40)
-    images = prepare_images(sc.reference, sc.moving, 16)
+    return sc, prepare_images(sc.reference, sc.moving, 16)
+
+
+def test_lookahead_pairs_gain_what_they_record_over_their_pentagon():
+    sc, images = _gable()
     plain, _ = initial_mesh(sc.points_reference, sc.points_moving, 25)
     mesh = plain.copy()
     single = greedy_search(plain, images, epsilon_pixels=250)
@@ -254,10 +259,7 @@ def test_lookahead_pairs_gain_what_they_record_over_their_pentagon():
 def test_the_searched_mesh_is_the_one_its_swaps_make():
     # The compiled search hands its triangles back to the Mesh at the end: they must be those
     # the recorded swaps make, each a valid swap in turn, with the same owners for every edge.
-    scenes = pytest.importorskip("bench.scenes")
-    sc = scenes.make_scene("gable", 4, size=(640, 480), camera="affine",
-                           radiometric="nonmonotone", noise=2.0, blur=0.0, n_interior=40)
-    images = prepare_images(sc.reference, sc.moving, 16)
+    sc, images = _gable()
     mesh, _ = initial_mesh(sc.points_reference, sc.points_moving, 25)
     replay = copy.deepcopy(mesh)  # the same slots (Mesh.copy compacts them)
     res = greedy_search(mesh, images, epsilon_pixels=250, lookahead=True)
