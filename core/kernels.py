@@ -970,6 +970,7 @@ SEARCH_STOPS = ("no swap raises the consistency by more than epsilon", "max_iter
 # gains scored, why it stopped, whether the look-ahead has begun noting changed vertices.
 STATE_USED, STATE_TAKEN, STATE_POSITIVE, STATE_EVALUATIONS, STATE_STOPPED, STATE_MOVED = range(6)
 STATE_STAMP = 6  # the next triangle's stamp
+STATE_REPORT = 7  # when the search next stops to report progress: microseconds from its start
 
 #: Most vertices of a searched mesh: a triangle's key ``(a n + b) n + c`` must fit in int64.
 SEARCH_MAX_VERTICES = 2**21 - 1
@@ -985,7 +986,7 @@ _PACK = np.int64(1) << 32
 def search_state(next_stamp: int) -> np.ndarray:
     """The integer state of a search that has not started on a mesh whose next triangle gets
     the stamp ``next_stamp``."""
-    state = np.zeros(7, dtype=np.int64)
+    state = np.zeros(8, dtype=np.int64)
     state[STATE_STAMP] = next_stamp
     return state
 
@@ -1534,14 +1535,15 @@ def search_start(mesh, cache, search, state, global_hist):  # type: ignore[no-un
 
 
 @njit(cache=True)
-def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, report, out,
-               t0):  # type: ignore[no-untyped-def]
+def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, report_every,
+               out, t0):  # type: ignore[no-untyped-def]
     """Swap the best edge while a gain exceeds its threshold (:func:`core.optimize.greedy_search`),
     after :func:`search_start`.
 
     ``moved`` flags per vertex those of quads changed since the last pass of pairs; ``out`` is
     :func:`search_steps`; ``t0`` the search's start (:func:`time.perf_counter`). Returns True
-    when it stopped to report progress (``report``, every 16 swaps): call it again to go on.
+    when it stopped to report progress (at most every ``report_every`` seconds, the first time
+    at ``state[STATE_REPORT]`` microseconds; never when negative): call it again to go on.
     ``state[STATE_STOPPED]`` indexes :data:`SEARCH_STOPS`.
     """
     n = mesh[4]
@@ -1569,5 +1571,7 @@ def search_run(mesh, cache, search, state, moved, max_iterations, lookahead, rep
         retired[e] = 1
         _record(e, added, gain[e], 0, mesh, moved, state, out, t0)
         _rescore(_boundary(i, j, k, l, n), mesh, cache, search, state)
-        if report and state[STATE_TAKEN] % 16 == 0:
+        elapsed = out[0][state[STATE_TAKEN] - 1, 4]  # seconds since t0, noted by _record
+        if report_every >= 0.0 and elapsed * 1e6 >= state[STATE_REPORT]:
+            state[STATE_REPORT] = int((elapsed + report_every) * 1e6)
             return True

@@ -100,12 +100,12 @@ def greedy_pyramid(
         level = images if sigma == 0 else smoothed(images, sigma)
 
         def report(f: float, i: int = i) -> None:
-            if progress is not None:
-                progress((i + f) / len(PYRAMID_SIGMAS))
+            progress((i + f) / len(PYRAMID_SIGMAS))  # type: ignore[misc]
 
         result = greedy_search(
             mesh, level, cost=options.cost, epsilon=options.epsilon,
-            max_iterations=max(options.max_iterations - len(steps), 0), progress=report,
+            max_iterations=max(options.max_iterations - len(steps), 0),
+            progress=None if progress is None else report,
             epsilon_pixels=options.epsilon_pixels, lookahead=options.lookahead,
         )
         steps += [replace(s, iteration=len(steps) + k + 1) for k, s in enumerate(result.steps)]

@@ -333,9 +333,10 @@ def register(
 
     t = time.perf_counter()
     report("optimizing", 0.0)
+    # Without a caller to tell, the compiled search is not interrupted to report.
     search = OPTIMIZERS[opts.optimizer](
-        mesh, images, opts, lambda f: report("optimizing", f)
-    )
+        mesh, images, opts,
+        None if progress is None else (lambda f: report("optimizing", f)))
     corrections = None
     if made is not None:
         # After the swaps: on the first mesh, whose diagonals cross the depth steps, right

@@ -121,6 +121,25 @@ def test_progress_can_abort():
         greedy_search(mesh, prepare_images(ref, mov, 16), progress=progress)
 
 
+def test_progress_reports_leave_the_search_as_it_was():
+    # Reported after every swap, the compiled search is left and entered again each time.
+    ref, mov = open_book()
+    rp, mp = book_points()
+    images = prepare_images(ref, mov, 16)
+    quiet, _ = initial_mesh(rp, mp, 25)
+    alone = greedy_search(quiet, images, epsilon_pixels=250, lookahead=True)
+    seen = []
+    told, _ = initial_mesh(rp, mp, 25)
+    reported = greedy_search(told, images, epsilon_pixels=250, lookahead=True,
+                             progress=seen.append, progress_interval=0.0)
+    assert len(alone.steps) >= 2 and len(seen) == len(alone.steps) + 1
+    assert seen[0] == 0.0 and all(0.0 < f <= 1.0 for f in seen[1:])
+    assert ([(s.removed, s.added, s.delta, s.nmi) for s in reported.steps]
+            == [(s.removed, s.added, s.delta, s.nmi) for s in alone.steps])
+    assert np.array_equal(told.triangles, quiet.triangles)
+    assert reported.evaluations == alone.evaluations
+
+
 def test_quad_gain_is_antisymmetric():
     rng = np.random.default_rng(0)
     ref = texture((100, 120), 1)
