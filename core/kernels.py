@@ -926,6 +926,92 @@ def containing(vertices, tris, points, out):  # type: ignore[no-untyped-def]
                 out[k] = t
                 break
 
+@njit(cache=True, inline="always")
+def _affine_fit(offsets, moving, weight, ridge, out):  # type: ignore[no-untyped-def]
+    """Weighted least-squares affine map ``moving ~ [offsets, 1] out`` of one point's ``k``
+    neighbours into ``out`` (3, 2): the normal equations with ``ridge`` on their diagonal,
+    solved by elimination with partial pivoting."""
+    m = np.zeros((3, 5))  # [X^T W X + ridge I | X^T W Y]
+    for j in range(offsets.shape[0]):
+        w = weight[j]
+        if w == 0.0:
+            continue
+        x0, x1 = offsets[j, 0], offsets[j, 1]
+        row = (x0, x1, 1.0)
+        for a in range(3):
+            wa = w * row[a]
+            m[a, 0] += wa * x0
+            m[a, 1] += wa * x1
+            m[a, 2] += wa
+            m[a, 3] += wa * moving[j, 0]
+            m[a, 4] += wa * moving[j, 1]
+    for a in range(3):
+        m[a, a] += ridge
+    for c in range(3):
+        p = c
+        for r in range(c + 1, 3):
+            if abs(m[r, c]) > abs(m[p, c]):
+                p = r
+        if p != c:
+            for q in range(5):
+                m[c, q], m[p, q] = m[p, q], m[c, q]
+        for r in range(c + 1, 3):
+            f = m[r, c] / m[c, c]
+            for q in range(c, 5):
+                m[r, q] -= f * m[c, q]
+    for col in range(2):
+        for c in range(2, -1, -1):
+            v = m[c, 3 + col]
+            for q in range(c + 1, 3):
+                v -= m[c, q] * out[q, col]
+            out[c, col] = v / m[c, c]
+
+
+@njit(cache=True, inline="always")
+def _fit_misses(offsets, moving, near, fit, res):  # type: ignore[no-untyped-def]
+    """Each neighbour's miss by the map ``fit`` into ``res``; their median over the ``near``
+    ones (0 for none)."""
+    k = offsets.shape[0]
+    kept = np.empty(k)
+    c = 0
+    for j in range(k):
+        px = offsets[j, 0] * fit[0, 0] + offsets[j, 1] * fit[1, 0] + fit[2, 0] - moving[j, 0]
+        py = offsets[j, 0] * fit[0, 1] + offsets[j, 1] * fit[1, 1] + fit[2, 1] - moving[j, 1]
+        res[j] = np.sqrt(px * px + py * py)
+        if near[j]:
+            kept[c] = res[j]
+            c += 1
+    if c == 0:
+        return 0.0
+    kept = np.sort(kept[:c])
+    return 0.5 * (kept[(c - 1) // 2] + kept[c // 2])
+
+
+@njit(cache=True)
+def trimmed_affine_fits(offsets, moving, near, min_px, ridge):  # type: ignore[no-untyped-def]
+    """Per point, the affine map of :func:`core.reliability._local_fits`: fitted to its ``near``
+    neighbours (``offsets`` (N, K, 2) from the point, their ``moving`` (N, K, 2) positions),
+    then twice to those it misses by at most ``max(min_px, 2.5 x median miss)``. Returns the
+    maps (N, 3, 2) and the median miss of the last over the near neighbours (N,). The numpy
+    form (batched normal equations, LAPACK's solve) took 1.2-5.6 ms a call on 30-490 points."""
+    n, k = offsets.shape[0], offsets.shape[1]
+    maps = np.empty((n, 3, 2))
+    spread = np.empty(n)
+    weight = np.empty(k)
+    res = np.empty(k)
+    for i in range(n):
+        for j in range(k):
+            weight[j] = 1.0 if near[i, j] else 0.0
+        for _ in range(2):
+            _affine_fit(offsets[i], moving[i], weight, ridge, maps[i])
+            bound = max(min_px, 2.5 * _fit_misses(offsets[i], moving[i], near[i], maps[i], res))
+            for j in range(k):
+                weight[j] = 1.0 if near[i, j] and res[j] <= bound else 0.0
+        _affine_fit(offsets[i], moving[i], weight, ridge, maps[i])
+        spread[i] = _fit_misses(offsets[i], moving[i], near[i], maps[i], res)
+    return maps, spread
+
+
 # --- the greedy edge-swap search ------------------------------------------------------------------
 #
 # The body of :func:`core.optimize.greedy_search`. The search is sequential: every swap changes

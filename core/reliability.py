@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pwlreg.core.kernels import template_peaks
+from pwlreg.core.kernels import template_peaks, trimmed_affine_fits
 from pwlreg.core.similarity import to_level
 
 #: A pair is ambiguous when its second correlation peak reaches this share of the best one.
@@ -50,6 +50,10 @@ COARSE_TEMPLATE, COARSE_RADIUS, COARSE_SIDE = 15, 20, 256
 #: Neighbours farther than this many times the median nearest-neighbour distance do not judge
 #: a pair (and a pair with fewer than five near neighbours is not judged).
 LOCAL_REACH = 4.0
+
+#: Added to the diagonal of a local fit's normal equations: a fit with too few weighted
+#: points stays solvable.
+AFFINE_RIDGE = 1e-6
 
 #: Standard deviation (grey levels) under which a template has no texture to correlate.
 MIN_TEMPLATE_STD = 2.0
@@ -383,32 +387,13 @@ def _local_fits(
     # surfaces that no affine map joins.
     near = dist <= LOCAL_REACH * spacing
     nb = np.where(near, nb, nb[:, :1])
-    centre = query
-    X = np.concatenate([ref[nb] - centre[:, None, :], np.ones((len(query), kk, 1))], axis=2)
-    Y = mov[nb]
-    weight = near.astype(np.float64)
-    for _ in range(2):
-        A = weighted_affine(X, Y, weight)
-        res = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
-        spread = _masked_median(res, near)[:, None]
-        weight = (near & (res <= np.maximum(min_px, 2.5 * spread))).astype(np.float64)
-    A = weighted_affine(X, Y, weight)
-    res = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
-    return _LocalFits(A, centre, nb, near, near.sum(axis=1) >= 5, _masked_median(res, near))
-
-
-def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Row medians of ``values`` over ``mask`` (0 for an empty row)."""
-    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
-    count = mask.sum(axis=1)
-    rows = np.arange(len(values))
-    lo = ordered[rows, np.maximum(count - 1, 0) // 2]
-    hi = ordered[rows, np.minimum(count // 2, values.shape[1] - 1)]
-    return np.where(count > 0, 0.5 * (lo + hi), 0.0)
+    A, spread = trimmed_affine_fits(ref[nb] - query[:, None, :], mov[nb], near, float(min_px),
+                                    AFFINE_RIDGE)
+    return _LocalFits(A, query, nb, near, near.sum(axis=1) >= 5, spread)
 
 
 def weighted_affine(
-    X: np.ndarray, Y: np.ndarray, weight: np.ndarray, *, ridge: float = 1e-6
+    X: np.ndarray, Y: np.ndarray, weight: np.ndarray, *, ridge: float = AFFINE_RIDGE
 ) -> np.ndarray:
     """Batched weighted least-squares affine maps ``Y ~ X A``: ``X`` (n, k, 3) with a column of
     ones, ``Y`` (n, k, 2), ``weight`` (n, k); ``A`` of shape (n, 3, 2). ``ridge`` keeps a fit

@@ -7,9 +7,16 @@ import numpy as np
 import pytest
 
 from pwlreg.core import reliability
+from pwlreg.core.kernels import trimmed_affine_fits
 from pwlreg.core.matching import find_conjugate_points
 from pwlreg.core.options import RegistrationOptions
-from pwlreg.core.reliability import MIN_TEMPLATE_STD, neighbour_outliers, uniqueness
+from pwlreg.core.reliability import (
+    AFFINE_RIDGE,
+    MIN_TEMPLATE_STD,
+    neighbour_outliers,
+    uniqueness,
+    weighted_affine,
+)
 
 
 def _texture(shape, seed, period=None):
@@ -323,3 +330,55 @@ def test_low_texture_flag_follows_opencv_at_the_threshold():
         _, _, _, flat = _reference_check_scale(ref, ref, pts, pts, template, radius)
         np.testing.assert_array_equal(flat_k, flat)
         assert 0 < flat.sum() < len(pts)
+
+
+def _numpy_local_fits(offsets, moving, near, min_px):
+    """The numpy form the compiled fits replaced: batched normal equations, LAPACK's solve."""
+    n, k = near.shape
+    X = np.concatenate([offsets, np.ones((n, k, 1))], axis=2)
+
+    def median(values):
+        ordered = np.sort(np.where(near, values, np.inf), axis=1)
+        count = near.sum(axis=1)
+        rows = np.arange(n)
+        lo = ordered[rows, np.maximum(count - 1, 0) // 2]
+        hi = ordered[rows, np.minimum(count // 2, k - 1)]
+        return np.where(count > 0, 0.5 * (lo + hi), 0.0)
+
+    weight = near.astype(np.float64)
+    for _ in range(2):
+        A = weighted_affine(X, moving, weight)
+        res = np.linalg.norm(np.matmul(X, A) - moving, axis=2)
+        weight = (near & (res <= np.maximum(min_px, 2.5 * median(res)[:, None]))).astype(float)
+    A = weighted_affine(X, moving, weight)
+    return A, median(np.linalg.norm(np.matmul(X, A) - moving, axis=2))
+
+
+def test_compiled_local_fits_match_the_numpy_form():
+    # Neighbourhoods on a plane with noise, some neighbours wrong by 5-40 px, some far (not
+    # near), a few with fewer than three near neighbours (the ridge keeps them solvable).
+    rng = np.random.default_rng(3)
+    n, k = 400, 10
+    offsets = rng.uniform(-30, 30, (n, k, 2))
+    affine = rng.normal(0, 0.1, (n, 3, 2)) + np.array([[1, 0], [0, 1], [0, 0]])
+    affine[:, 2] = rng.uniform(-50, 50, (n, 2))
+    moving = np.einsum("nkj,njc->nkc", offsets, affine[:, :2]) + affine[:, 2][:, None, :]
+    moving += rng.normal(0, 0.4, moving.shape)
+    wrong = rng.random((n, k)) < 0.15
+    moving[wrong] += rng.uniform(5, 40, (wrong.sum(), 2)) * rng.choice([-1, 1], (wrong.sum(), 2))
+    near = rng.random((n, k)) < 0.85
+    near[:20, 2:] = False
+    A, spread = trimmed_affine_fits(offsets, moving, near, 3.0, AFFINE_RIDGE)
+    A_np, spread_np = _numpy_local_fits(offsets, moving, near, 3.0)
+    # Where a pair is judged (five near neighbours or more) the two agree to rounding; the
+    # ridge's fits of two neighbours are ill-conditioned (about 1e9) and only finite.
+    judged = near.sum(axis=1) >= 5
+    assert judged.sum() > 300 and np.isfinite(A).all()
+    assert np.allclose(A[judged], A_np[judged], rtol=1e-9, atol=1e-9)
+    assert np.allclose(spread[judged], spread_np[judged], rtol=1e-9, atol=1e-9)
+    # The trimming drops a wrong neighbour: with one among seven or more right ones the map is
+    # mostly within a pixel of the true one (a far outlier can bend the first fit past
+    # recovery).
+    good = ((near & ~wrong).sum(axis=1) >= 7) & ((near & wrong).sum(axis=1) == 1)
+    close = np.abs(A[good] - affine[good]).max(axis=(1, 2)) < 1.0
+    assert good.sum() > 50 and close.mean() > 0.9
