@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
-from pwlreg.core.reliability import weighted_affine
+from pwlreg.core.kernels import affine_fits
 from pwlreg.core.similarity import (
     ScoringImages,
     from_level,
@@ -87,12 +87,11 @@ def local_affine_extrapolation(
     dist, nb = dist.reshape(len(tgt), kk), nb.reshape(len(tgt), kk)
     scale = np.median(dist, axis=1, keepdims=True) + 1e-9
     weight = scale**2 / (dist**2 + scale**2)
-    centre = tgt[:, None, :]
-    X = np.concatenate([(ref[nb] - centre) / scale[:, :, None], np.ones((len(tgt), kk, 1))], 2)
+    offsets = (ref[nb] - tgt[:, None, :]) / scale[:, :, None]
     Y = mov[nb]
     for _ in range(2):
-        A = weighted_affine(X, Y, weight, ridge=1e-9)
-        miss = np.linalg.norm(np.matmul(X, A) - Y, axis=2)
+        A = affine_fits(offsets, Y, weight, 1e-9)
+        miss = np.linalg.norm(np.matmul(offsets, A[:, :2]) + A[:, 2:] - Y, axis=2)
         limit = 3.0 * np.median(miss, axis=1, keepdims=True) + 0.5
         weight = np.where(miss <= limit, weight, 0.0)
     # The target sits at the origin of its own fit: its position is the constant term.

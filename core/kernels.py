@@ -988,6 +988,17 @@ def _fit_misses(offsets, moving, near, fit, res):  # type: ignore[no-untyped-def
 
 
 @njit(cache=True)
+def affine_fits(offsets, moving, weight, ridge):  # type: ignore[no-untyped-def]
+    """Per point, the weighted least-squares affine map ``moving ~ [offsets, 1] A`` of its
+    neighbours (``offsets`` and ``moving`` (N, K, 2), ``weight`` (N, K)), ``ridge`` added to
+    the normal equations' diagonal: the maps (N, 3, 2)."""
+    maps = np.empty((offsets.shape[0], 3, 2))
+    for i in range(offsets.shape[0]):
+        _affine_fit(offsets[i], moving[i], weight[i], ridge, maps[i])
+    return maps
+
+
+@njit(cache=True)
 def trimmed_affine_fits(offsets, moving, near, min_px, ridge):  # type: ignore[no-untyped-def]
     """Per point, the affine map of :func:`core.reliability._local_fits`: fitted to its ``near``
     neighbours (``offsets`` (N, K, 2) from the point, their ``moving`` (N, K, 2) positions),

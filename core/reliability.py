@@ -390,15 +390,3 @@ def _local_fits(
     A, spread = trimmed_affine_fits(ref[nb] - query[:, None, :], mov[nb], near, float(min_px),
                                     AFFINE_RIDGE)
     return _LocalFits(A, query, nb, near, near.sum(axis=1) >= 5, spread)
-
-
-def weighted_affine(
-    X: np.ndarray, Y: np.ndarray, weight: np.ndarray, *, ridge: float = AFFINE_RIDGE
-) -> np.ndarray:
-    """Batched weighted least-squares affine maps ``Y ~ X A``: ``X`` (n, k, 3) with a column of
-    ones, ``Y`` (n, k, 2), ``weight`` (n, k); ``A`` of shape (n, 3, 2). ``ridge`` keeps a fit
-    with too few weighted points solvable."""
-    Xw = X * weight[:, :, None]
-    XtX = np.matmul(Xw.transpose(0, 2, 1), X) + ridge * np.eye(3)
-    XtY = np.matmul(Xw.transpose(0, 2, 1), Y)
-    return np.linalg.solve(XtX, XtY)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pwlreg.core import reliability
-from pwlreg.core.kernels import trimmed_affine_fits
+from pwlreg.core.kernels import affine_fits, trimmed_affine_fits
 from pwlreg.core.matching import find_conjugate_points
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.reliability import (
@@ -15,7 +15,6 @@ from pwlreg.core.reliability import (
     MIN_TEMPLATE_STD,
     neighbour_outliers,
     uniqueness,
-    weighted_affine,
 )
 
 
@@ -332,6 +331,12 @@ def test_low_texture_flag_follows_opencv_at_the_threshold():
         assert 0 < flat.sum() < len(pts)
 
 
+def _numpy_affine(X, Y, weight, ridge):
+    Xw = X * weight[:, :, None]
+    XtX = np.matmul(Xw.transpose(0, 2, 1), X) + ridge * np.eye(3)
+    return np.linalg.solve(XtX, np.matmul(Xw.transpose(0, 2, 1), Y))
+
+
 def _numpy_local_fits(offsets, moving, near, min_px):
     """The numpy form the compiled fits replaced: batched normal equations, LAPACK's solve."""
     n, k = near.shape
@@ -347,14 +352,14 @@ def _numpy_local_fits(offsets, moving, near, min_px):
 
     weight = near.astype(np.float64)
     for _ in range(2):
-        A = weighted_affine(X, moving, weight)
+        A = _numpy_affine(X, moving, weight, AFFINE_RIDGE)
         res = np.linalg.norm(np.matmul(X, A) - moving, axis=2)
         weight = (near & (res <= np.maximum(min_px, 2.5 * median(res)[:, None]))).astype(float)
-    A = weighted_affine(X, moving, weight)
+    A = _numpy_affine(X, moving, weight, AFFINE_RIDGE)
     return A, median(np.linalg.norm(np.matmul(X, A) - moving, axis=2))
 
 
-def test_compiled_local_fits_match_the_numpy_form():
+def test_compiled_affine_fits_match_the_numpy_form():
     # Neighbourhoods on a plane with noise, some neighbours wrong by 5-40 px, some far (not
     # near), a few with fewer than three near neighbours (the ridge keeps them solvable).
     rng = np.random.default_rng(3)
@@ -376,6 +381,11 @@ def test_compiled_local_fits_match_the_numpy_form():
     assert judged.sum() > 300 and np.isfinite(A).all()
     assert np.allclose(A[judged], A_np[judged], rtol=1e-9, atol=1e-9)
     assert np.allclose(spread[judged], spread_np[judged], rtol=1e-9, atol=1e-9)
+    # The untrimmed fits with weights of any size (the frame's extrapolation).
+    weight = np.where(near, rng.uniform(0.1, 1.0, near.shape), 0.0)
+    X = np.concatenate([offsets, np.ones((n, k, 1))], axis=2)
+    assert np.allclose(affine_fits(offsets[judged], moving[judged], weight[judged], 1e-9),
+                       _numpy_affine(X, moving, weight, 1e-9)[judged], rtol=1e-9, atol=1e-9)
     # The trimming drops a wrong neighbour: with one among seven or more right ones the map is
     # mostly within a pixel of the true one (a far outlier can bend the first fit past
     # recovery).
