@@ -927,24 +927,23 @@ def containing(vertices, tris, points, out):  # type: ignore[no-untyped-def]
                 break
 
 @njit(cache=True, inline="always")
-def _affine_fit(offsets, moving, weight, ridge, out):  # type: ignore[no-untyped-def]
+def _affine_fit(offsets, moving, weight, ridge, m, out):  # type: ignore[no-untyped-def]
     """Weighted least-squares affine map ``moving ~ [offsets, 1] out`` of one point's ``k``
-    neighbours into ``out`` (3, 2): the normal equations with ``ridge`` on their diagonal,
-    solved by elimination with partial pivoting."""
-    m = np.zeros((3, 5))  # [X^T W X + ridge I | X^T W Y]
+    neighbours into ``out`` (3, 2): the normal equations (in the workspace ``m`` (3, 5)) with
+    ``ridge`` on their diagonal, solved by elimination with partial pivoting."""
+    m[:] = 0.0
     for j in range(offsets.shape[0]):
         w = weight[j]
         if w == 0.0:
             continue
-        x0, x1 = offsets[j, 0], offsets[j, 1]
-        row = (x0, x1, 1.0)
+        x0, x1, y0, y1 = offsets[j, 0], offsets[j, 1], moving[j, 0], moving[j, 1]
         for a in range(3):
-            wa = w * row[a]
+            wa = w * (x0 if a == 0 else x1 if a == 1 else 1.0)
             m[a, 0] += wa * x0
             m[a, 1] += wa * x1
             m[a, 2] += wa
-            m[a, 3] += wa * moving[j, 0]
-            m[a, 4] += wa * moving[j, 1]
+            m[a, 3] += wa * y0
+            m[a, 4] += wa * y1
     for a in range(3):
         m[a, a] += ridge
     for c in range(3):
@@ -968,22 +967,24 @@ def _affine_fit(offsets, moving, weight, ridge, out):  # type: ignore[no-untyped
 
 
 @njit(cache=True, inline="always")
-def _fit_misses(offsets, moving, near, fit, res):  # type: ignore[no-untyped-def]
+def _fit_misses(offsets, moving, near, fit, res, kept):  # type: ignore[no-untyped-def]
     """Each neighbour's miss by the map ``fit`` into ``res``; their median over the ``near``
-    ones (0 for none)."""
-    k = offsets.shape[0]
-    kept = np.empty(k)
+    ones (0 for none), sorted in the workspace ``kept``."""
     c = 0
-    for j in range(k):
+    for j in range(offsets.shape[0]):
         px = offsets[j, 0] * fit[0, 0] + offsets[j, 1] * fit[1, 0] + fit[2, 0] - moving[j, 0]
         py = offsets[j, 0] * fit[0, 1] + offsets[j, 1] * fit[1, 1] + fit[2, 1] - moving[j, 1]
-        res[j] = np.sqrt(px * px + py * py)
+        r = np.sqrt(px * px + py * py)
+        res[j] = r
         if near[j]:
-            kept[c] = res[j]
+            q = c  # insertion into the sorted prefix
+            while q > 0 and kept[q - 1] > r:
+                kept[q] = kept[q - 1]
+                q -= 1
+            kept[q] = r
             c += 1
     if c == 0:
         return 0.0
-    kept = np.sort(kept[:c])
     return 0.5 * (kept[(c - 1) // 2] + kept[c // 2])
 
 
@@ -993,8 +994,9 @@ def affine_fits(offsets, moving, weight, ridge):  # type: ignore[no-untyped-def]
     neighbours (``offsets`` and ``moving`` (N, K, 2), ``weight`` (N, K)), ``ridge`` added to
     the normal equations' diagonal: the maps (N, 3, 2)."""
     maps = np.empty((offsets.shape[0], 3, 2))
+    m = np.empty((3, 5))
     for i in range(offsets.shape[0]):
-        _affine_fit(offsets[i], moving[i], weight[i], ridge, maps[i])
+        _affine_fit(offsets[i], moving[i], weight[i], ridge, m, maps[i])
     return maps
 
 
@@ -1010,16 +1012,19 @@ def trimmed_affine_fits(offsets, moving, near, min_px, ridge):  # type: ignore[n
     spread = np.empty(n)
     weight = np.empty(k)
     res = np.empty(k)
+    kept = np.empty(k)
+    m = np.empty((3, 5))
     for i in range(n):
         for j in range(k):
             weight[j] = 1.0 if near[i, j] else 0.0
         for _ in range(2):
-            _affine_fit(offsets[i], moving[i], weight, ridge, maps[i])
-            bound = max(min_px, 2.5 * _fit_misses(offsets[i], moving[i], near[i], maps[i], res))
+            _affine_fit(offsets[i], moving[i], weight, ridge, m, maps[i])
+            median = _fit_misses(offsets[i], moving[i], near[i], maps[i], res, kept)
+            bound = max(min_px, 2.5 * median)
             for j in range(k):
                 weight[j] = 1.0 if near[i, j] and res[j] <= bound else 0.0
-        _affine_fit(offsets[i], moving[i], weight, ridge, maps[i])
-        spread[i] = _fit_misses(offsets[i], moving[i], near[i], maps[i], res)
+        _affine_fit(offsets[i], moving[i], weight, ridge, m, maps[i])
+        spread[i] = _fit_misses(offsets[i], moving[i], near[i], maps[i], res, kept)
     return maps, spread
 
 
