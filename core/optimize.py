@@ -430,9 +430,9 @@ def greedy_search(
         turn twice to reach a crease). The search then goes on with single swaps.
     progress_interval : float
         Seconds of search between calls of ``progress`` at the least (0: after every swap).
-        Each report leaves the compiled search, whose arguments are typed anew when it is
-        entered again (about 0.7 ms on a 1024x768 registration; every 16 swaps, as it reported
-        before, that was nine times); a cancellation waits at most this long.
+        Each report leaves the compiled search, whose arguments numba types anew when it is
+        entered again (about 0.7 ms on a 1024x768 registration); a cancellation waits at most
+        this long.
     """
     t0 = time.perf_counter()
     if cost not in COSTS:
