@@ -9,9 +9,11 @@ registration by registration (which goes first alternates), so that the ratio of
 adjacent pair of registrations sees the same state of the shared machine: its speed drifts by
 20-30 % over seconds, which blocks of whole runs took as a difference between the trees. The
 report gives, per pair, the median of those ratios and their spread, and the ratio of the two
-trees' best times. The old tree is a ``git worktree`` of ``--rev`` in a temporary directory,
-imported through a package shim (``pwlreg/`` with its ``core`` and ``service`` linked in),
-because the editable install maps ``pwlreg`` to this checkout. Both trees register the same
+trees' best times; then the median ratio of their CPU times (all threads), the work each does,
+which a second core busy with other work changes less than the wall time. The old tree is a
+``git worktree`` of ``--rev`` in a temporary directory, imported through a package shim
+(``pwlreg/`` with its ``core`` and ``service`` linked in), because the editable install maps
+``pwlreg`` to this checkout. Both trees register the same
 images, written once by this one. The default revision is the code at the filing of issue
 #10, whose bound is 2 x.
 """
@@ -33,7 +35,8 @@ from bench.scenes import make_scene
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Run in each tree's process: loads the pairs, warms up, then registers the pair whose index
-#: it reads on each line of its input and answers with the seconds it took.
+#: it reads on each line of its input and answers with the seconds it took, wall and CPU (all
+#: the process's threads).
 CHILD = """
 import sys, time
 import numpy as np
@@ -47,9 +50,9 @@ for ref, mov in pairs:
 print("ready", flush=True)
 for line in sys.stdin:
     ref, mov = pairs[int(line)]
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     register(ref, mov)
-    print(time.perf_counter() - t, flush=True)
+    print(time.perf_counter() - t, time.process_time() - c, flush=True)
 """
 
 
@@ -89,10 +92,12 @@ class _Tree:
         if self.process.stdout.readline().strip() != "ready":
             raise RuntimeError(f"the tree in {shim} did not start")
 
-    def time(self, pair: int) -> float:
+    def time(self, pair: int) -> tuple[float, float]:
+        """Wall and CPU seconds of one registration of the pair ``pair``."""
         self.process.stdin.write(f"{pair}\n")
         self.process.stdin.flush()
-        return float(self.process.stdout.readline())
+        wall, cpu = self.process.stdout.readline().split()
+        return float(wall), float(cpu)
 
     def close(self) -> None:
         self.process.stdin.close()
@@ -118,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
                      "old": _Tree(_shim(old, work, "old"), list(paths.values()))}
             times = {(name, label): [] for name in names for label in trees}
             ratios: dict[str, list[float]] = {name: [] for name in names}
+            work: dict[str, list[float]] = {name: [] for name in names}
             print(f"register(), {args.rounds} x {args.repeat} turns per pair, seconds: this "
                   f"tree against {args.rev}")
             try:
@@ -126,9 +132,10 @@ def main(argv: list[str] | None = None) -> int:
                         for j in range(args.repeat):
                             order = ("new", "old") if (r + j) % 2 == 0 else ("old", "new")
                             took = {label: trees[label].time(k) for label in order}
-                            for label, t in took.items():
+                            for label, (t, _) in took.items():
                                 times[(name, label)].append(t)
-                            ratios[name].append(took["new"] / took["old"])
+                            ratios[name].append(took["new"][0] / took["old"][0])
+                            work[name].append(took["new"][1] / took["old"][1])
                         print(f"  round {r + 1}  {name:28s} median "
                               f"{np.median(times[(name, 'new')][-args.repeat:]):.3f} against "
                               f"{np.median(times[(name, 'old')][-args.repeat:]):.3f}  "
@@ -143,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{q1:.2f}-{q3:.2f}, {len(values)} turns), best times "
                       f"{min(times[(name, 'new')]):.3f} / {min(times[(name, 'old')]):.3f} s: "
                       f"{best:.2f} x")
+                print(f"{'':28s} CPU time ratio median {np.median(work[name]):.2f} x (quartiles "
+                      f"{np.percentile(work[name], 25):.2f}-{np.percentile(work[name], 75):.2f})")
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old)],
                            check=False, capture_output=True)
