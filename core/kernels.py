@@ -1397,7 +1397,7 @@ def _quad_triangles(quads):  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def _score_quads(quads, mesh, cache, state):  # type: ignore[no-untyped-def]
     """Gain of swapping each quad ``(i, j, k, l)`` of ``quads`` (E, 4) and its pixel count
-    (:meth:`core.optimize.QuadScorer.quad_deltas`)."""
+    (:meth:`core.optimize.QuadScorer.deltas`)."""
     return _gains(_quad_triangles(quads), 2, mesh, cache, state)
 
 

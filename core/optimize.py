@@ -20,7 +20,6 @@ from pwlreg.core.similarity import (
     ScoringImages,
     mutual_information,
     ncc,
-    summed_information,
     triangle_statistics,
     xlogx_table,
 )
@@ -231,15 +230,11 @@ class TriangleCache:
         self._ensure_codes(codes)
         return self._code_rows(codes)[inverse].reshape(np.shape(tris)[:-1])
 
-    def quad_rows(self, quads: list[Quad] | np.ndarray) -> np.ndarray:
+    def quad_rows(self, quads: list[Quad]) -> np.ndarray:
         """Rows ``(E, 4)`` of each quad's two current and two swapped triangles (the order of
-        :func:`quad_triples`), computed first where missing. ``quads`` may be an ``(E, 4)``
-        array of ``(i, j, k, l)``."""
-        if isinstance(quads, np.ndarray) or len(quads) > _NUMPY_BATCH:
-            if isinstance(quads, np.ndarray):
-                ijkl = quads
-            else:
-                ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
+        :func:`quad_triples`), computed first where missing."""
+        if len(quads) > _NUMPY_BATCH:
+            ijkl = np.array([q[:4] for q in quads], dtype=np.int64).reshape(-1, 4)
             return self.lookup(ijkl[:, [0, 1, 2, 0, 1, 3, 2, 3, 0, 2, 3, 1]].reshape(-1, 4, 3))
         keys = quad_keys(quads)
         codes = self._codes(keys)
@@ -282,26 +277,17 @@ class Cost:
 
     ``measure(hist, moments, bins)`` takes ``(..., M * M)`` histograms and ``(..., 6)`` moments
     (None unless ``needs_moments``) and returns ``(...)`` values, larger is more consistent.
-    ``summed(table, rows, bins)``, if given, returns ``measure`` of the sums
-    ``table[rows].sum(axis=-2)`` and their pixel counts, the same values without gathering the
-    rows. ``compiled`` names the same measure in the compiled search
+    ``compiled`` names the same measure in the compiled search
     (:func:`core.kernels.search_run`): ``"nmi"`` or ``"ncc"``.
     """
 
     needs_moments: bool
     measure: Callable[[np.ndarray, np.ndarray | None, int], np.ndarray]
     compiled: str
-    summed: Callable[[np.ndarray, np.ndarray, int], tuple[np.ndarray, np.ndarray]] | None = None
-
-
-def _summed_nmi(table: np.ndarray, rows: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
-    _, nmi, pixels = summed_information(table, rows, bins)
-    return nmi, pixels
 
 
 COSTS: dict[str, Cost] = {
-    "mi": Cost(False, lambda hist, moments, bins: mutual_information(hist, bins)[1], "nmi",
-               _summed_nmi),
+    "mi": Cost(False, lambda hist, moments, bins: mutual_information(hist, bins)[1], "nmi"),
     "ncc": Cost(True, lambda hist, moments, bins: ncc(moments), "ncc"),
 }
 """Cost name (value of ``options.cost``) -> measure: NMI (the paper) or NCC."""
@@ -321,22 +307,9 @@ class QuadScorer:
 
     def deltas(self, mesh: Mesh, edges: list[Edge]) -> np.ndarray:
         """Gain of each swap: consistency after minus before, same order as ``edges``."""
-        return self.deltas_and_pixels(mesh, edges)[0]
-
-    def deltas_and_pixels(self, mesh: Mesh, edges: list[Edge]) -> tuple[np.ndarray, np.ndarray]:
-        """Gain of each swap and the number of reference pixels of its quad."""
-        return self.quad_deltas([mesh.quad(e) for e in edges])
-
-    def quad_deltas(self, quads: list[Quad] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`deltas_and_pixels` of the quads themselves (the caller has them already),
-        :class:`Quad` objects or an ``(E, 4)`` array of ``(i, j, k, l)``."""
-        if len(quads) == 0:
-            return np.zeros(0), np.zeros(0)
-        rows = self.cache.quad_rows(quads)
-        if self.cost.summed is not None:
-            sums = rows.reshape(-1, 2, 2)  # (quad, before/after, triangle)
-            value, pixels = self.cost.summed(self.cache.table, sums, self.cache.bins)
-            return value[:, 1] - value[:, 0], pixels[:, 0]
+        if not edges:
+            return np.zeros(0)
+        rows = self.cache.quad_rows([mesh.quad(e) for e in edges])
         h = self.cache.hist_rows(rows)
         # Before (current triangles) and after (swapped) side by side: one measure call.
         sides = h[:, 0::2] + h[:, 1::2]
@@ -345,7 +318,7 @@ class QuadScorer:
             mo = self.cache.moment_rows(rows)
             m = mo[:, 0::2] + mo[:, 1::2]
         value = self.cost.measure(sides, m, self.cache.bins)
-        return value[:, 1] - value[:, 0], sides[:, 0].sum(axis=1).astype(np.float64)
+        return value[:, 1] - value[:, 0]
 
 
 def gain_thresholds(pixels: np.ndarray, epsilon: float, epsilon_pixels: float) -> np.ndarray:

@@ -208,12 +208,11 @@ def uniqueness(
     with np.errstate(divide="ignore", invalid="ignore"):
         pred = q[:, :2] / q[:, 2:3]
     pred = np.where(np.isfinite(pred), pred, -1e6)
-    levels = scales
     checked = np.zeros(n, bool)
     flat = np.zeros(n, bool)
     disagree = np.zeros(n, bool)
     ratio = np.full(n, -np.inf)
-    for a, b, scale, template, radius in levels:
+    for a, b, scale, template, radius in scales:
         # A pair already rejected on a finer scale costs no more correlations.
         alive = ~(disagree | (ratio >= AMBIGUITY_RATIO))
         best_s, ratio_s, dist_s, flat_s = _check_scale(
