@@ -1,4 +1,5 @@
 import json
+import os
 import subprocess
 import sys
 
@@ -119,3 +120,19 @@ def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
     missing, frozen = out.stdout.split("\n")[:2]
     assert missing.strip() == "", f"not compiled by warm_up: {missing}"
     assert int(frozen) > 10_000
+
+
+def test_threaded_kernels_wait_passively_unless_told_otherwise() -> None:
+    # OpenMP reads the policy when numba starts its threads, after the kernels' import.
+    code = (
+        "import os\n"
+        "from pwlreg.core import kernels\n"
+        "kernels.set_threads(2)\n"
+        "print(os.environ['OMP_WAIT_POLICY'])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+    for given, expected in ((None, "passive"), ("active", "active")):
+        run_env = env if given is None else {**env, "OMP_WAIT_POLICY": given}
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=120, check=True, env=run_env)
+        assert out.stdout.strip() == expected
