@@ -9,6 +9,9 @@ Three families of measures, all pure functions of numpy arrays:
   (:func:`mesh_correctness`, :func:`edge_compatibility`).
 * **Global mutual information** (bits) of the reference and registered images inside a mask
   (:func:`global_mi`), the paper's expression (8), for reporting.
+* **Epipolar line error** (:func:`epipolar_line_error`): how far each pixel's true match lies
+  from its epipolar line under an estimated fundamental matrix, which the insertion searches
+  along.
 * **Disparity correctness** (:func:`disparity_correctness`): a proxy of mesh correctness for
   rectified stereo pairs with a dense disparity but no plane labels (Middlebury): an edge lies on
   one plane only if the disparity is linear along it.
@@ -39,6 +42,7 @@ __all__ = [
     "edge_compatibility",
     "endpoint_error",
     "endpoint_error_map",
+    "epipolar_line_error",
     "error_by_triangle",
     "error_summary",
     "global_mi",
@@ -155,6 +159,43 @@ def endpoint_error(
     total = int(scorable.sum())
     stats["coverage"] = stats["n"] / total if total else float("nan")
     return stats
+
+
+def epipolar_line_error(
+    fundamental: np.ndarray,
+    truth_x: np.ndarray,
+    truth_y: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    step: int = 4,
+) -> np.ndarray:
+    """Distance (pixels) of each reference pixel's true match to its epipolar line.
+
+    Parameters
+    ----------
+    fundamental : ndarray, shape (3, 3)
+        ``x_mov^T F x_ref = 0`` in pixels (:attr:`core.epipolar.EpipolarModel.matrix`).
+    truth_x, truth_y, valid
+        As in :func:`endpoint_error_map`.
+    step : int
+        Every ``step``-th pixel in x and y is scored.
+
+    Returns
+    -------
+    ndarray of float64, shape (K,)
+        One distance per scored pixel with a finite truth (and ``valid``).
+    """
+    tx = np.asarray(truth_x, dtype=np.float64)[::step, ::step]
+    ty = np.asarray(truth_y, dtype=np.float64)[::step, ::step]
+    keep = np.isfinite(tx) & np.isfinite(ty)
+    if valid is not None:
+        keep &= np.asarray(valid, dtype=bool)[::step, ::step]
+    ys, xs = np.nonzero(keep)
+    points = np.column_stack([xs * step, ys * step, np.ones(len(xs))])
+    lines = points @ np.asarray(fundamental, dtype=np.float64).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.abs(lines[:, 0] * tx[keep] + lines[:, 1] * ty[keep] + lines[:, 2]) / np.hypot(
+            lines[:, 0], lines[:, 1])
 
 
 TRIANGLE_CLASSES = ("extrapolated", "step", "vertex off", "clean")

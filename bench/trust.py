@@ -14,8 +14,9 @@ What it measures
   occluders in front of a facade, wide baselines with half the scene in common
   (``overlap=0.5``), and unrelated pairs. Per case: the kept conjugate pairs and the share more
   than 3 px from the truth, the true endpoint error (EPE) of the registration over the covisible
-  pixels of its mesh, its coverage and the verdict. A failed job (no reliable pairs) is
-  reported as such; for the verdict table it counts as ``unreliable``.
+  pixels of its mesh, its coverage and the verdict, and how far the true matches lie from the
+  epipolar lines of the matcher's fundamental matrix (its 90th percentile). A failed job (no
+  reliable pairs) is reported as such; for the verdict table it counts as ``unreliable``.
 * **The verdict against the truth**: per verdict, the cases and the distribution of their true
   mean EPE; unrelated pairs must all be ``unreliable`` (or refused), and no case whose kept
   pairs are mostly wrong may be ``good``.
@@ -41,7 +42,7 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from bench import middlebury, realdata
-from bench.metrics import endpoint_error
+from bench.metrics import endpoint_error, epipolar_line_error
 from bench.scenes import Scene, make_scene, make_unrelated_pair
 from pwlreg.core.errors import RegistrationError
 from pwlreg.core.extent import local_affine_extrapolation
@@ -52,6 +53,9 @@ from pwlreg.core.pipeline import register, warm_up
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "trust"
 SIZE = (640, 480)
 WRONG_PX = 3.0
+#: Distance of a true match from its epipolar line beyond which the insertion's search along the
+#: line cannot find it (the final pass looks 2 px either side).
+EPIPOLAR_OFF_PX = 2.0
 VERDICTS = ("good", "doubtful", "unreliable", "refused")
 
 
@@ -194,6 +198,12 @@ def run_case(case: Case) -> dict:
     row["wrong_share"] = float(np.mean(err > WRONG_PX)) if len(err) else 1.0
     row["wrong"] = int(np.count_nonzero(err > WRONG_PX))
     row["point_error_median"] = float(np.median(err)) if len(err) else float("nan")
+    if r.points.epipolar is not None:
+        # The insertion searches along these lines: where they miss the truth, it can only find
+        # lookalikes.
+        off = epipolar_line_error(r.points.epipolar.matrix, scene.truth_x, scene.truth_y,
+                                  scene.covisible)
+        row["epipolar_p90"] = float(np.percentile(off, 90)) if len(off) else float("nan")
     epe = endpoint_error(r.reference_vertices, r.moving_vertices, r.final_triangles,
                          scene.truth_x, scene.truth_y, scene.covisible)
     row.update(epe_mean=epe["mean"], epe_median=epe["median"], coverage=epe["coverage"])
@@ -359,6 +369,11 @@ def summarize(rows: list[dict]) -> dict:
             r["verdict"] == "good" and r.get("wrong_share", 0) > 0.5 for r in scored),
         "unrelated_not_unreliable": sum(r["verdict"] not in ("unreliable", "refused")
                                         for r in unrelated),
+        # Cases with an epipolar geometry, and of them those whose lines miss the true matches
+        # by more than EPIPOLAR_OFF_PX at the 90th percentile.
+        "epipolar_off": [sum(r["epipolar_p90"] > EPIPOLAR_OFF_PX for r in scored
+                             if "epipolar_p90" in r),
+                         sum("epipolar_p90" in r for r in scored)],
         "verdicts": table,
     }
 
@@ -385,6 +400,10 @@ def write_report(rows: list[dict], summary: dict, mb: list[dict], hard: list[dic
         f"* Cases whose kept pairs are mostly wrong and called `good`: "
         f"**{s['mostly_wrong_called_good']}**.",
         f"* Unrelated pairs not `unreliable` or refused: **{s['unrelated_not_unreliable']}**.",
+        f"* Epipolar geometry: in {s['epipolar_off'][0]} of {s['epipolar_off'][1]} registered "
+        f"cases with one, a tenth of the covisible pixels or more have their true match more "
+        f"than {EPIPOLAR_OFF_PX:.0f} px from their estimated epipolar line, along which the "
+        f"insertion searches.",
         "", "## Verdict against the true mean EPE (pixels) of each case", "",
         "| verdict | cases | of which unrelated | mostly wrong pairs | EPE median | p90 | max |",
         "|---|---|---|---|---|---|---|",
@@ -408,14 +427,17 @@ def write_report(rows: list[dict], summary: dict, mb: list[dict], hard: list[dic
                      f"{_median(ok, 'epe_mean')} | {_median(ok, 'coverage')} | {verdicts} |")
     lines += ["", "## Cases", "",
               "EPE and coverage of the covisible pixels: whole mesh (frame) / measured part "
-              "(triangles without an extrapolated vertex).", "",
-              "| case | verdict | pairs | wrong | point err med | EPE mean | coverage | "
-              "time s | reasons |", "|---|---|---|---|---|---|---|---|---|"]
+              "(triangles without an extrapolated vertex). Epipolar p90: the 90th percentile, "
+              "over the covisible pixels, of the distance from their true match to their "
+              "epipolar line under the matcher's fundamental matrix.", "",
+              "| case | verdict | pairs | wrong | point err med | epipolar p90 | EPE mean | "
+              "coverage | time s | reasons |", "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         reason = r.get("reason") or "; ".join(r.get("reasons", []))
         lines.append(
             f"| {r['name']} | {r['verdict']} | {r.get('points', 0)} | {r.get('wrong', '-')} | "
-            f"{_f(r.get('point_error_median'))} | {_f(r.get('epe_mean'))} / "
+            f"{_f(r.get('point_error_median'))} | {_f(r.get('epipolar_p90'))} | "
+            f"{_f(r.get('epe_mean'))} / "
             f"{_f(r.get('epe_measured'))} | {_f(r.get('coverage'))} / "
             f"{_f(r.get('coverage_measured'))} | {_f(r.get('seconds'))} | {reason[:160]} |")
     if mb:

@@ -14,6 +14,7 @@ from bench.metrics import (
     edge_compatibility,
     endpoint_error,
     endpoint_error_map,
+    epipolar_line_error,
     error_by_triangle,
     error_summary,
     global_mi,
@@ -337,3 +338,20 @@ def test_error_by_triangle_finds_the_step_the_bad_vertex_and_the_border():
     overall = endpoint_error(ref, mov, tris, truth_x, truth_y, valid)["mean"]
     assert sum(c["contribution"] for c in classes.values()) == pytest.approx(overall)
     assert all(c["flow mean"] == 0.0 for c in classes.values())
+
+
+def test_epipolar_line_error_is_the_distance_of_the_true_match_to_its_line():
+    # A rectified pair: F maps a reference pixel to the row it sits on in the moving image.
+    F = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    h, w = 20, 30
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    truth_x, truth_y = xs + 7.0, ys.copy()
+    truth_y[10:] += 2.5  # the lower half lands 2.5 px below its line
+    truth_x[0, :] = np.nan  # unknown truth is not scored
+    valid = np.ones((h, w), bool)
+    valid[:, 25:] = False
+    err = epipolar_line_error(F, truth_x, truth_y, valid, step=1)
+    assert len(err) == (h - 1) * 25
+    np.testing.assert_allclose(np.sort(err), np.r_[np.zeros(9 * 25), np.full(10 * 25, 2.5)],
+                               atol=1e-12)
+    assert len(epipolar_line_error(F, truth_x, truth_y, valid, step=4)) == 4 * 7

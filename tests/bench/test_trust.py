@@ -26,16 +26,16 @@ def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_
         assert not np.isfinite(_truth_at(s, far[None, ::-1].astype(float))).any()
 
 
-def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_good_cases():
+def test_summary_counts_wrong_pairs_by_source_verdict_moves_epipolar_and_mostly_wrong_good():
     rows = [
         {"name": "a", "group": "polyhedral", "status": "successful", "verdict": "good",
          "points": 90, "inserted": 10, "wrong": 1, "wrong_share": 0.01, "epe_mean": 1.0,
          "wrong_by_source": {"matched": [0, 90], "step": [1, 10]},
-         "corrected": {"correct": [3, 2, 1]}},
+         "corrected": {"correct": [3, 2, 1]}, "epipolar_p90": 0.4},
         {"name": "b", "group": "polyhedral", "status": "successful", "verdict": "doubtful",
          "points": 10, "wrong": 8, "wrong_share": 0.8, "epe_mean": 30.0,
          "wrong_by_source": {"matched": [8, 10]},
-         "corrected": {"correct": [1, 1, 0], "border": [4, 1, 2]}},
+         "corrected": {"correct": [1, 1, 0], "border": [4, 1, 2]}, "epipolar_p90": 6.0},
         {"name": "c", "group": "unrelated", "status": "successful", "verdict": "doubtful",
          "points": 5, "wrong_share": 1.0, "epe_mean": float("nan")},
     ]
@@ -47,6 +47,7 @@ def test_summary_counts_wrong_pairs_by_source_verdict_moves_and_mostly_wrong_goo
     assert s["wrong_by_source"] == {"matched": [8, 100], "step": [1, 10]}
     assert s["wrong_by_verdict"] == {"good": [1, 100], "doubtful": [8, 10]}
     assert s["corrected"] == {"correct": [4, 3, 1], "border": [4, 1, 2]}
+    assert s["epipolar_off"] == [1, 2]
     rows[1]["verdict"] = "good"
     assert summarize(rows)["mostly_wrong_called_good"] == 1
 
