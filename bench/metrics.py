@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pwlreg.core.epipolar import epipolar_lines
 from pwlreg.core.similarity import mutual_information
 from pwlreg.core.warp import piecewise_map
 
@@ -191,11 +192,9 @@ def epipolar_line_error(
     if valid is not None:
         keep &= np.asarray(valid, dtype=bool)[::step, ::step]
     ys, xs = np.nonzero(keep)
-    points = np.column_stack([xs * step, ys * step, np.ones(len(xs))])
-    lines = points @ np.asarray(fundamental, dtype=np.float64).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.abs(lines[:, 0] * tx[keep] + lines[:, 1] * ty[keep] + lines[:, 2]) / np.hypot(
-            lines[:, 0], lines[:, 1])
+    lines = epipolar_lines(np.asarray(fundamental, dtype=np.float64),
+                           np.column_stack([xs * step, ys * step]).astype(np.float64))
+    return np.abs(lines[:, 0] * tx[keep] + lines[:, 1] * ty[keep] + lines[:, 2])
 
 
 TRIANGLE_CLASSES = ("extrapolated", "step", "vertex off", "clean")
