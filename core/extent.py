@@ -89,11 +89,10 @@ def local_affine_extrapolation(
     weight = scale**2 / (dist**2 + scale**2)
     offsets = (ref[nb] - tgt[:, None, :]) / scale[:, :, None]
     Y = mov[nb]
-    for _ in range(2):
-        A = affine_fits(offsets, Y, weight, 1e-9)
-        miss = np.linalg.norm(np.matmul(offsets, A[:, :2]) + A[:, 2:] - Y, axis=2)
-        limit = 3.0 * np.median(miss, axis=1, keepdims=True) + 0.5
-        weight = np.where(miss <= limit, weight, 0.0)
+    A = affine_fits(offsets, Y, weight, 1e-9)
+    miss = np.linalg.norm(np.matmul(offsets, A[:, :2]) + A[:, 2:] - Y, axis=2)
+    limit = 3.0 * np.median(miss, axis=1, keepdims=True) + 0.5
+    A = affine_fits(offsets, Y, np.where(miss <= limit, weight, 0.0), 1e-9)
     # The target sits at the origin of its own fit: its position is the constant term.
     return A[:, 2, :]
 
