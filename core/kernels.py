@@ -555,6 +555,197 @@ def warp(ref_tris, mov_tris, moving, out, full, closed):  # type: ignore[no-unty
             _warp_triangle(ref_tris[t], mov_tris[t], moving, out, full, closed[t], owned)
 
 
+#: The corners of the unit triangle: the affine map onto it gives a pixel's barycentric
+#: coordinates of the first two vertices.
+_UNIT = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+
+
+@njit(cache=True, parallel=True)
+def align_sums(ref_tris, mov_tris, ref, mov, gain, bias, scale, moments, system,
+               vector):  # type: ignore[no-untyped-def]
+    """Per triangle, the sums of the photometric alignment of its moving vertices
+    (:func:`core.align.align_vertices`), over the reference pixels it owns, sampled bilinearly
+    in ``mov`` (float32) where its map takes them inside the moving image; the slopes are the
+    bilinear sample's own.
+
+    ``moments[t]`` (6,): the count and the sums of ``m``, ``r``, ``m * m``, ``m * r`` and
+    ``r * r`` (``r`` the reference level, ``m`` the moving sample). With ``scale > 0`` also the
+    Gauss-Newton sums of ``gain[t] * m + bias[t] - r`` under Cauchy weights of that scale:
+    ``system[t]`` (6, 6) and ``vector[t]`` (6,) over the unknowns ``(x0, x1, x2, y0, y1, y2)``,
+    the moving coordinates of the triangle's vertices. Each thread writes its triangles' rows
+    only; the sums stay in locals (a store per term and pixel took twice the time).
+    """
+    mh, mw = mov.shape
+    height, width = ref.shape
+    xmax = mw - 1.0
+    ymax = mh - 1.0
+    solve = scale > 0.0
+    inverse = 1.0 / scale if solve else 0.0
+    for t in prange(ref_tris.shape[0]):
+        q = np.empty((3, 2), dtype=np.int64)
+        m = np.empty((2, 3))
+        b = np.empty((2, 3))
+        if _load_triangle(ref_tris[t], q) == 0:
+            continue
+        _affine(ref_tris[t], mov_tris[t], m)
+        _affine(ref_tris[t], _UNIT, b)
+        a_t = gain[t]
+        c_t = bias[t]
+        m00, m01, m02, m10, m11, m12 = m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2]
+        b00, b01, b02, b10, b11, b12 = b[0, 0], b[0, 1], b[0, 2], b[1, 0], b[1, 1], b[1, 2]
+        n = s_m = s_r = s_mm = s_mr = s_rr = 0.0
+        g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+        h00 = 0.0
+        h01 = 0.0
+        h02 = 0.0
+        h03 = 0.0
+        h04 = 0.0
+        h05 = 0.0
+        h11 = 0.0
+        h12 = 0.0
+        h13 = 0.0
+        h14 = 0.0
+        h15 = 0.0
+        h22 = 0.0
+        h23 = 0.0
+        h24 = 0.0
+        h25 = 0.0
+        h33 = 0.0
+        h34 = 0.0
+        h35 = 0.0
+        h44 = 0.0
+        h45 = 0.0
+        h55 = 0.0
+        y0, y1 = _row_range(q, height)
+        for y in range(y0, y1 + 1):
+            lo, hi = row_span(q, y, width)
+            for x in range(lo, hi + 1):
+                sx = m00 * x + m01 * y + m02
+                sy = m10 * x + m11 * y + m12
+                if not (0.0 <= sx <= xmax and 0.0 <= sy <= ymax):
+                    continue
+                xi = min(int(sx), mw - 2)
+                yi = min(int(sy), mh - 2)
+                fx = sx - xi
+                fy = sy - yi
+                w00 = (1.0 - fx) * (1.0 - fy)
+                w01 = fx * (1.0 - fy)
+                w10 = (1.0 - fx) * fy
+                w11 = fx * fy
+                p00 = float(mov[yi, xi])
+                p01 = float(mov[yi, xi + 1])
+                p10 = float(mov[yi + 1, xi])
+                p11 = float(mov[yi + 1, xi + 1])
+                v = w00 * p00 + w01 * p01 + w10 * p10 + w11 * p11
+                r = float(ref[y, x])
+                n += 1.0
+                s_m += v
+                s_r += r
+                s_mm += v * v
+                s_mr += v * r
+                s_rr += r * r
+                if not solve:
+                    continue
+                # The derivatives of the bilinear sample itself: the residual's own slope.
+                gx = (1.0 - fy) * (p01 - p00) + fy * (p11 - p10)
+                gy = (1.0 - fx) * (p10 - p00) + fx * (p11 - p01)
+                res = a_t * v + c_t - r
+                u = res * inverse
+                weight = 1.0 / (1.0 + u * u)
+                b0 = b00 * x + b01 * y + b02
+                b1 = b10 * x + b11 * y + b12
+                b2 = 1.0 - b0 - b1
+                j0 = a_t * b0 * gx
+                j1 = a_t * b1 * gx
+                j2 = a_t * b2 * gx
+                j3 = a_t * b0 * gy
+                j4 = a_t * b1 * gy
+                j5 = a_t * b2 * gy
+                wj0 = weight * j0
+                wj1 = weight * j1
+                wj2 = weight * j2
+                wj3 = weight * j3
+                wj4 = weight * j4
+                wj5 = weight * j5
+                g0 += wj0 * res
+                g1 += wj1 * res
+                g2 += wj2 * res
+                g3 += wj3 * res
+                g4 += wj4 * res
+                g5 += wj5 * res
+                h00 += wj0 * j0
+                h01 += wj0 * j1
+                h02 += wj0 * j2
+                h03 += wj0 * j3
+                h04 += wj0 * j4
+                h05 += wj0 * j5
+                h11 += wj1 * j1
+                h12 += wj1 * j2
+                h13 += wj1 * j3
+                h14 += wj1 * j4
+                h15 += wj1 * j5
+                h22 += wj2 * j2
+                h23 += wj2 * j3
+                h24 += wj2 * j4
+                h25 += wj2 * j5
+                h33 += wj3 * j3
+                h34 += wj3 * j4
+                h35 += wj3 * j5
+                h44 += wj4 * j4
+                h45 += wj4 * j5
+                h55 += wj5 * j5
+        moments[t, 0] = n
+        moments[t, 1] = s_m
+        moments[t, 2] = s_r
+        moments[t, 3] = s_mm
+        moments[t, 4] = s_mr
+        moments[t, 5] = s_rr
+        if not solve:
+            continue
+        vector[t, 0] = g0
+        vector[t, 1] = g1
+        vector[t, 2] = g2
+        vector[t, 3] = g3
+        vector[t, 4] = g4
+        vector[t, 5] = g5
+        system[t, 0, 0] = h00
+        system[t, 0, 1] = h01
+        system[t, 1, 0] = h01
+        system[t, 0, 2] = h02
+        system[t, 2, 0] = h02
+        system[t, 0, 3] = h03
+        system[t, 3, 0] = h03
+        system[t, 0, 4] = h04
+        system[t, 4, 0] = h04
+        system[t, 0, 5] = h05
+        system[t, 5, 0] = h05
+        system[t, 1, 1] = h11
+        system[t, 1, 2] = h12
+        system[t, 2, 1] = h12
+        system[t, 1, 3] = h13
+        system[t, 3, 1] = h13
+        system[t, 1, 4] = h14
+        system[t, 4, 1] = h14
+        system[t, 1, 5] = h15
+        system[t, 5, 1] = h15
+        system[t, 2, 2] = h22
+        system[t, 2, 3] = h23
+        system[t, 3, 2] = h23
+        system[t, 2, 4] = h24
+        system[t, 4, 2] = h24
+        system[t, 2, 5] = h25
+        system[t, 5, 2] = h25
+        system[t, 3, 3] = h33
+        system[t, 3, 4] = h34
+        system[t, 4, 3] = h34
+        system[t, 3, 5] = h35
+        system[t, 5, 3] = h35
+        system[t, 4, 4] = h44
+        system[t, 4, 5] = h45
+        system[t, 5, 4] = h45
+        system[t, 5, 5] = h55
+
+
 # Candidates per block of :func:`strip_correlation`: a thread's scratch arrays are allocated
 # once per block, not once per candidate.
 _STRIP_BLOCK = 16

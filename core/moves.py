@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pwlreg.core.align import REACH as ALIGN_REACH
 from pwlreg.core.correct import (
+    ALIGN_MOVE,
     BORDER_MARGIN,
     BORDER_MOVE,
     GAIN_FACTOR,
@@ -184,6 +186,15 @@ MOVES: dict[str, Move] = {
         "images scored at the verdict's scale); no two neighbours move in one pass (a surface "
         "that shows only along the border, such as a floor nearer than the pairs above it, "
         "is missed by both extrapolations)",
+    ),
+    ALIGN_MOVE: Move(
+        "vertex",
+        "every vertex not given by the client moved together, after the other moves, so that "
+        "the reference mapped through the mesh matches the moving image over all the "
+        "triangles' pixels (locally normalized images, a gain and bias per triangle, robust "
+        f"weights, coarse to fine), by at most {ALIGN_REACH:g} px; kept where its triangles' "
+        "consistency (the swaps' cost) did not prefer its position before and no triangle "
+        "folds (the matcher and the insertion place each vertex by a patch around it alone)",
     ),
     "swap": Move(
         "swap",

@@ -14,7 +14,13 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
-from pwlreg.core.correct import Corrections, border_search, contradicted_vertices
+from pwlreg.core.align import align_vertices
+from pwlreg.core.correct import (
+    Corrections,
+    aligned_vertices,
+    border_search,
+    contradicted_vertices,
+)
 from pwlreg.core.errors import InputError, UnreliableResultError
 from pwlreg.core.extent import extrapolations, frame_vertices
 from pwlreg.core.imaging import matching_image, to_gray8
@@ -360,6 +366,17 @@ def register(
                 epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
             moving_v[found.vertices] = found.moving
             corrections = corrections + found
+        # Last: the other moves change which surface a vertex follows, this one where on it.
+        # On the level the verdict looks at (the images themselves up to 640 px a side).
+        aligned = aligned_vertices(
+            level, mesh.reference, moving_v,
+            align_vertices(level.reference_values.reshape(level.shape), level.moving,
+                           mesh.reference, moving_v, mesh.triangles,
+                           np.array(origins) != "client", scale=scale),
+            mesh.triangles, epsilon=opts.epsilon, epsilon_pixels=opts.epsilon_pixels,
+            cost=opts.cost, scale=scale)
+        moving_v[aligned.vertices] = aligned.moving
+        corrections = corrections + aligned
         if len(corrections.vertices):
             moved = Mesh(mesh.reference, moving_v, mesh.triangles)
             search = after_vertex_moves(search, images, mesh, moved, corrections.vertices)

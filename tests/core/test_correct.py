@@ -9,7 +9,9 @@ from scipy.spatial import Delaunay
 
 from bench import middlebury
 from bench.metrics import endpoint_error
+from pwlreg.core.align import REACH as ALIGN_REACH
 from pwlreg.core.correct import (
+    ALIGN_MOVE,
     BORDER_MOVE,
     MOVE,
     Corrections,
@@ -247,16 +249,22 @@ def test_border_moves_are_recorded_like_the_mesh_they_leave() -> None:
     assert result.extrapolated[moved.vertices[border]].all()
     mesh, convergence = mesh_document(result), convergence_document(result)
     assert mesh["corrections"] == convergence["corrections"] == moved.to_list()
-    for record in mesh["corrections"]:
-        np.testing.assert_allclose(record["to"], mesh["moving_vertices"][record["vertex"]],
-                                   atol=0.01)
+    # A vertex's records follow one another; the last one ends where the vertex is.
+    last = np.r_[moved.vertices[1:] != moved.vertices[:-1], True]
+    for record, final in zip(mesh["corrections"], last, strict=True):
+        if final:
+            np.testing.assert_allclose(record["to"], mesh["moving_vertices"][record["vertex"]],
+                                       atol=0.01)
+    for a, b in zip(moved.to_list()[:-1], moved.to_list()[1:], strict=True):
+        if a["vertex"] == b["vertex"]:
+            np.testing.assert_allclose(b["from"], a["to"])
     counts = {m["move"]: m["count"] for m in mesh["moves"]}
     assert counts[BORDER_MOVE] == int(border.sum())
-    # Each moved border vertex lies on the epipolar line of its reference position.
+    # Each border move ends on the epipolar line of the vertex's reference position.
     F = result.points.epipolar.matrix
-    for v in moved.vertices[border]:
+    for v, to in zip(moved.vertices[border], moved.moving[border], strict=True):
         line = F @ np.r_[result.reference_vertices[v], 1.0]
-        distance = abs(np.r_[result.moving_vertices[v], 1.0] @ line) / np.hypot(*line[:2])
+        distance = abs(np.r_[to, 1.0] @ line) / np.hypot(*line[:2])
         assert distance < 0.01
 
 
@@ -269,31 +277,40 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
     moved = result.corrections
     assert moved is not None
     moves = np.array(moved.moves)
-    correct, border = moves == MOVE, moves == BORDER_MOVE
-    assert correct.any() and border.any() and (correct | border).all()
+    correct, border, align = moves == MOVE, moves == BORDER_MOVE, moves == ALIGN_MOVE
+    assert correct.any() and border.any() and align.any() and (correct | border | align).all()
     assert not result.extrapolated[moved.vertices[correct]].any()
     assert result.extrapolated[moved.vertices[border]].all()
-    np.testing.assert_allclose(result.moving_vertices[moved.vertices], moved.moving, atol=0.01)
+    # The alignment comes last: a vertex's last record ends where the vertex is.
+    last = np.r_[moved.vertices[1:] != moved.vertices[:-1], True]
+    np.testing.assert_allclose(result.moving_vertices[moved.vertices[last]], moved.moving[last],
+                               atol=0.01)
     assert (np.linalg.norm(moved.moving - moved.before, axis=1)[correct] > 2.0).all()
+    assert (np.linalg.norm(moved.moving - moved.before, axis=1)[align] <= ALIGN_REACH).all()
 
     def epe(mov: np.ndarray) -> float:
         return endpoint_error(result.reference_vertices, mov, result.final_triangles,
                               pair.truth_x, pair.truth_y, pair.valid)["mean"]
 
-    # Each move lowers the error on its own (measured: the correct move 0.03 px, the
-    # border search 0.12 px, its floor along the bottom side).
-    for which, drop in ((correct, 0.01), (border, 0.05)):
-        before = result.moving_vertices.copy()
-        before[moved.vertices[which]] = moved.before[which]
-        assert epe(result.moving_vertices) < epe(before) - drop
+    # Each move lowers the error on its own, undone last first (measured: the alignment
+    # 0.02 px, the correct move 0.03 px, the border search 0.12 px, its floor along the bottom
+    # side).
+    before = result.moving_vertices.copy()
+    for which, drop in ((align, 0.01), (correct, 0.01), (border, 0.05)):
+        undone = before.copy()
+        undone[moved.vertices[which]] = moved.before[which]
+        assert epe(before) < epe(undone) - drop
+        before = undone
     mesh, convergence = mesh_document(result), convergence_document(result)
     assert mesh["corrections"] == convergence["corrections"]
-    for record in mesh["corrections"]:
+    for record, final in zip(mesh["corrections"], last, strict=True):
         v = record["vertex"]
-        np.testing.assert_allclose(record["to"], mesh["moving_vertices"][v], atol=0.01)
-        assert record["move"] in (MOVE, BORDER_MOVE) and record["gain"] > 0
+        if final:
+            np.testing.assert_allclose(record["to"], mesh["moving_vertices"][v], atol=0.01)
+        assert record["move"] in (MOVE, BORDER_MOVE, ALIGN_MOVE)
+        assert record["gain"] > 0 if record["move"] != ALIGN_MOVE else record["gain"] >= 0
     counts = {m["move"]: m for m in mesh["moves"]}
-    for name, which in ((MOVE, correct), (BORDER_MOVE, border)):
+    for name, which in ((MOVE, correct), (BORDER_MOVE, border), (ALIGN_MOVE, align)):
         assert counts[name]["count"] == int(which.sum())
         assert counts[name]["kind"] == "vertex"
         assert counts[name]["reason"] == MOVES[name].reason
