@@ -68,7 +68,10 @@ class RegistrationOptions(BaseModel):
         "as at least two of its neighbours do) is moved so (the 'correct' move), and with "
         "extent='frame' each extrapolated border vertex is searched for along its epipolar "
         "line around its extrapolations, moved where its triangles gain as much (the 'border' "
-        "move). "
+        "move). Last, every vertex but the client's moves together, by at most 2 px, so that "
+        "the images agree through the mesh over all its pixels (a direct photometric "
+        "alignment, each vertex pulled towards where it was), kept where its triangles' "
+        "consistency does not fall (the 'align' move). "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
         "alone.",
