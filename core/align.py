@@ -183,7 +183,8 @@ def _step(
     gain = np.where(seen & (var_m > 1e-9 * kk), cov / np.maximum(var_m, 1e-12), 1.0)
     gain = np.clip(gain, *GAIN_RANGE)
     bias = (sr - gain * sm) / kk
-    # The residuals' deviation: the median over the triangles of each one's after its gain.
+    # The residuals' deviation: the median over the triangles of each one's own, after its gain
+    # and bias.
     spread = (srr - 2 * gain * smr - 2 * bias * sr + gain * gain * smm + 2 * gain * bias * sm
               + bias * bias * k) / kk
     if not seen.any():

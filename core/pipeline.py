@@ -131,7 +131,8 @@ class RegistrationResult:
     def summary(self) -> str:
         """One line: points, triangles, swaps, global MI before and after, time."""
         s = self.search
-        moved = 0 if self.corrections is None else len(self.corrections.vertices)
+        # A vertex moved by two moves (``correct`` then ``align``) is one vertex moved.
+        moved = 0 if self.corrections is None else len(np.unique(self.corrections.vertices))
         return (
             f"{len(self.reference_vertices)} points ({self.points.source}), "
             f"{len(self.final_triangles)} triangles, {len(s.steps)} swaps "

@@ -314,4 +314,4 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
         assert counts[name]["count"] == int(which.sum())
         assert counts[name]["kind"] == "vertex"
         assert counts[name]["reason"] == MOVES[name].reason
-    assert f"{len(moved.vertices)} vertices moved" in result.summary()
+    assert f"{len(np.unique(moved.vertices))} vertices moved" in result.summary()
