@@ -11,7 +11,7 @@ proposal: :func:`core.correct.aligned_vertices` keeps a vertex's new position on
 star's consistency (the swaps' cost) does not fall.
 
 Measured (``python -m bench.beyond --frame``, automatic points): Middlebury's frame mean
-endpoint error 0.510 / 0.342 / 0.973 / 1.146 -> 0.499 / 0.332 / 0.945 / 1.124 px. Told the
+endpoint error 0.510 / 0.342 / 0.973 / 1.146 -> 0.494 / 0.325 / 0.924 / 1.105 px. Told the
 truth, the best positions for the same triangles would give 0.196 / 0.126 / 0.716 / 0.616 px:
 most of the mesh's error on planes is its vertices' own sub-pixel error (a quarter of a pixel
 at the median there, where the images themselves disagree by about as much across the rows).
@@ -45,13 +45,6 @@ PRIOR = 0.01
 #: does not belong to.
 REACH = 2.0
 
-#: Pull of each vertex towards its position before, as a share of the information its own
-#: triangles' pixels give on it: the matcher's estimate and the alignment's weigh alike at 1.
-#: On synthetic scenes whose matcher is within 0.07-0.15 px the images alone (0) took the
-#: vertices to 0.08-0.20 px (an occluder scene of seed 0 3.5 % worse than Delaunay, 1.4 %
-#: before); at 1, Middlebury's frame gains a third to a half less.
-PULL = 1.0
-
 #: Cauchy scale in units of the residuals' deviation (95 % efficiency under Gaussian noise).
 CAUCHY = 2.385
 
@@ -82,7 +75,6 @@ def align_vertices(
     *,
     scale: float = 1.0,
     schedule: tuple[tuple[float, int], ...] = SCHEDULE,
-    pull: float = PULL,
     reach: float = REACH,
 ) -> np.ndarray:
     """Moving positions of the ``movable`` vertices that align the images through the mesh.
@@ -102,9 +94,6 @@ def align_vertices(
         Blur (pixels) of each level, coarse to fine, and its Gauss-Newton steps.
     scale : float
         Pixels of the images given per pixel of the full images.
-    pull : float
-        Weight of each vertex's position before, as a share of the information its triangles'
-        pixels give on it (0: the images alone decide).
     reach : float
         Longest move kept (pixels); a vertex moved farther stays where it was.
 
@@ -141,10 +130,8 @@ def align_vertices(
         mov_l = cv2.GaussianBlur(mov_n, (0, 0), sigma) if sigma > 0 else mov_n
         moments = None
         for _ in range(iterations):
-            offset = np.concatenate([m[free, 0] - start[free, 0],
-                                     m[free, 1] - start[free, 1]]) * scale
-            step, moments = _step(ref_l, mov_l, ref_tris, level(m[tris]), index, offset,
-                                  moments, pull)
+            step, moments = _step(ref_l, mov_l, ref_tris, level(m[tris]), index, 2 * len(free),
+                                  moments)
             if step is None:
                 break
             m[free, 0] += step[:len(free)] / scale
@@ -156,7 +143,7 @@ def align_vertices(
 
 def _step(
     ref_l: np.ndarray, mov_l: np.ndarray, ref_tris: np.ndarray, mov_tris: np.ndarray,
-    index: np.ndarray, offset: np.ndarray, moments: np.ndarray | None, pull: float,
+    index: np.ndarray, size: int, moments: np.ndarray | None,
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """One damped Gauss-Newton step of the unknowns (None when no pixel constrains them), and
     the triangles' moments at the positions it started from.
@@ -168,7 +155,7 @@ def _step(
     (-1 for a fixed vertex's): conjugate gradients multiply by them block by block, without
     assembling the sparse matrix (a sparse LU of Middlebury's 1340 unknowns took 3 ms a step).
     """
-    count, size = len(ref_tris), len(offset)
+    count = len(ref_tris)
     if moments is None:
         moments = np.zeros((count, 6))
         unused = np.zeros((count, 6, 6)), np.zeros((count, 6))
@@ -205,10 +192,7 @@ def _step(
                            minlength=size + 1)[:size]
     if not np.any(diagonal > 0):
         return None, None
-    anchor = pull * diagonal
-    regular = ((1.0 + DAMPING) * diagonal + anchor
-               + PRIOR * float(np.median(diagonal[diagonal > 0])))
-    grad = grad + anchor * offset
+    regular = (1.0 + DAMPING) * diagonal + PRIOR * float(np.median(diagonal[diagonal > 0]))
 
     def product(x: np.ndarray) -> np.ndarray:
         blocks = np.einsum("tij,tj->ti", system, np.append(x, 0.0)[slot])

@@ -70,8 +70,7 @@ class RegistrationOptions(BaseModel):
         "line around its extrapolations, moved where its triangles gain as much (the 'border' "
         "move). Last, every vertex but the client's moves together, by at most 2 px, so that "
         "the images agree through the mesh over all its pixels (a direct photometric "
-        "alignment, each vertex pulled towards where it was), kept where its triangles' "
-        "consistency does not fall (the 'align' move). "
+        "alignment), kept where its triangles' consistency does not fall (the 'align' move). "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
         "alone.",

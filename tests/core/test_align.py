@@ -42,20 +42,17 @@ def _error(mov_v: np.ndarray, truth: np.ndarray) -> float:
 def test_noisy_vertices_move_to_the_images_agreement(tone: bool) -> None:
     reference, moving = _pair(tone)
     ref_v, truth, start, tris = _mesh(0.4)
-    free = np.ones(len(ref_v), bool)
-    aligned = align_vertices(reference, moving, ref_v, start, tris, free, pull=0.0)
+    aligned = align_vertices(reference, moving, ref_v, start, tris, np.ones(len(ref_v), bool))
+    # Measured: 0.43 -> 0.10 px (also under the tone curve).
     assert _error(start, truth) > 0.3
     assert _error(aligned, truth) < 0.15
-    # Pulled back towards where they were as strongly as the images pull them on: halfway.
-    pulled = align_vertices(reference, moving, ref_v, start, tris, free)
-    assert _error(aligned, truth) < _error(pulled, truth) < 0.8 * _error(start, truth)
 
 
 def test_fixed_vertices_stay_and_the_others_still_move() -> None:
     reference, moving = _pair()
     ref_v, truth, start, tris = _mesh(0.4)
     movable = np.arange(len(ref_v)) % 2 == 0
-    aligned = align_vertices(reference, moving, ref_v, start, tris, movable, pull=0.0)
+    aligned = align_vertices(reference, moving, ref_v, start, tris, movable)
     np.testing.assert_array_equal(aligned[~movable], start[~movable])
     assert _error(aligned[movable], truth[movable]) < 0.5 * _error(start[movable], truth[movable])
 
@@ -68,8 +65,7 @@ def test_on_a_reduced_level_the_moves_are_in_full_image_pixels() -> None:
            for im in (reference, moving)]
     level = [cv2.pyrDown(im) for im in big]
     ref_2, truth_2, start_2 = ((p + 0.5) * 2 - 0.5 for p in (ref_v, truth, start))
-    aligned = align_vertices(*level, ref_2, start_2, tris, np.ones(len(ref_v), bool), scale=0.5,
-                             pull=0.0)
+    aligned = align_vertices(*level, ref_2, start_2, tris, np.ones(len(ref_v), bool), scale=0.5)
     assert _error(aligned, truth_2) < 0.4 * _error(start_2, truth_2)
 
 
@@ -80,9 +76,9 @@ def test_a_vertex_the_alignment_takes_too_far_stays() -> None:
     start[far] += [REACH + 2.0, 0.0]
     free = np.ones(len(ref_v), bool)
     # The images take it back by 1.8 px (measured): more than a reach of 1 px, not 2.
-    moved = align_vertices(reference, moving, ref_v, start, tris, free, pull=0.0)
+    moved = align_vertices(reference, moving, ref_v, start, tris, free)
     assert 1.0 < np.hypot(*(moved[far] - start[far])) < REACH
-    kept = align_vertices(reference, moving, ref_v, start, tris, free, pull=0.0, reach=1.0)
+    kept = align_vertices(reference, moving, ref_v, start, tris, free, reach=1.0)
     np.testing.assert_array_equal(kept[far], start[far])
 
 
