@@ -192,9 +192,10 @@ MOVES: dict[str, Move] = {
         "every vertex not given by the client moved together, after the other moves, so that "
         "the reference mapped through the mesh matches the moving image over all the "
         "triangles' pixels (locally normalized images, a gain and bias per triangle, robust "
-        f"weights, coarse to fine), by at most {ALIGN_REACH:g} px; kept where its triangles' "
-        "consistency (the swaps' cost) did not prefer its position before and no triangle "
-        "folds (the matcher and the insertion place each vertex by a patch around it alone)",
+        f"weights, coarse to fine), by at most {ALIGN_REACH:g} px; kept where the consistency "
+        "(the swaps' cost) of its triangles, all aligned, did not fall below theirs before "
+        "and no triangle folds (the matcher and the insertion place each vertex by a patch "
+        "around it alone)",
     ),
     "swap": Move(
         "swap",
