@@ -157,11 +157,10 @@ def _step(
     """
     count = len(ref_tris)
     if moments is None:
+        # The moments alone (scale 0): the kernel reads no gain and writes no system.
         moments = np.zeros((count, 6))
-        unused = np.zeros((count, 6, 6)), np.zeros((count, 6))
-        none = np.zeros(count)
-        align_sums(ref_tris, mov_tris, ref_l, mov_l, none, none, 0.0,
-                   moments, *unused)
+        align_sums(ref_tris, mov_tris, ref_l, mov_l, np.zeros(0), np.zeros(0), 0.0, moments,
+                   np.zeros((0, 6, 6)), np.zeros((0, 6)))
     k, sm, sr, smm, smr, srr = moments.T
     seen = k >= 3
     kk = np.maximum(k, 1.0)

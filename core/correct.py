@@ -71,11 +71,6 @@ MOVE = "correct"
 BORDER_MOVE = "border"
 ALIGN_MOVE = "align"
 
-#: An aligned vertex goes back where its star, all its vertices aligned, gains less than this
-#: share of the correct move's threshold over the star before the alignment. At 0.5 or 1
-#: (a gain required) Middlebury's frame lost a third to a half of the alignment's gain.
-ALIGN_MARGIN = 0.0
-
 #: Candidate displacements are taken once per cell of this side (px): neighbours moving
 #: alike propose one candidate, not several.
 DISTINCT_PX = 0.5
@@ -235,8 +230,6 @@ def aligned_vertices(
     aligned: np.ndarray,
     triangles: np.ndarray,
     *,
-    epsilon: float,
-    epsilon_pixels: float,
     cost: str = "mi",
     scale: float = 1.0,
 ) -> Corrections:
@@ -247,9 +240,11 @@ def aligned_vertices(
     triangle does not follow bends; the swaps' cost scores by the joint histogram. Each moved
     vertex's star (its triangles) is scored with every vertex where the alignment put it and
     with every vertex where it was: where the star's consistency falls, the vertex goes back.
-    Vertices of a triangle the kept moves fold go back too, until none folds. On the
-    synthetic scenes of seeds 0-1 without points, aligning every vertex without this made six
-    scenes more than 2 % worse than Delaunay; with it, none that was not already.
+    No gain over the swaps' threshold is asked (asking half or all of the correct move's
+    threshold lost a third to a half of Middlebury's gain). Vertices of a triangle the kept
+    moves fold go back too, until none folds. On the synthetic scenes of seeds 0-1 without
+    points, aligning every vertex without this made six scenes more than 2 % worse than
+    Delaunay; with it, none that was not already.
 
     Parameters
     ----------
@@ -261,9 +256,6 @@ def aligned_vertices(
         The moving positions the alignment proposes.
     triangles : ndarray of int, shape (T, 3)
         The mesh's triangles.
-    epsilon, epsilon_pixels : float
-        The swaps' gain threshold (:func:`core.optimize.gain_thresholds`): a star must gain
-        :data:`ALIGN_MARGIN` times :data:`GAIN_FACTOR` times it.
     cost : str, optional
         The swaps' consistency measure, an entry of :data:`core.optimize.COSTS`.
     scale : float, optional
@@ -298,10 +290,7 @@ def aligned_vertices(
             None if moments is None else _group_sums(moments[star[k]], owner, len(moved)),
             images.bins))
     gain = value[1] - value[0]
-    pixels = _group_sums(hist[star[k]], owner, len(moved)).sum(axis=1).astype(np.float64)
-    threshold = GAIN_FACTOR * gain_thresholds(pixels, epsilon, epsilon_pixels)
-    stay = gain < ALIGN_MARGIN * threshold
-    after[moved[stay]] = before[moved[stay]]
+    after[moved[gain < 0.0]] = before[moved[gain < 0.0]]
     ref_orient = orientation(*ref_v[tris].transpose(1, 0, 2))
     while True:
         folded = orientation(*after[tris].transpose(1, 0, 2)) != ref_orient

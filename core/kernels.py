@@ -569,7 +569,8 @@ def align_sums(ref_tris, mov_tris, ref, mov, gain, bias, scale, moments, system,
     bilinear sample's own.
 
     ``moments[t]`` (6,): the count and the sums of ``m``, ``r``, ``m * m``, ``m * r`` and
-    ``r * r`` (``r`` the reference level, ``m`` the moving sample). With ``scale > 0`` also the
+    ``r * r`` (``r`` the reference level, ``m`` the moving sample). With ``scale > 0`` (else
+    ``gain``, ``bias``, ``system`` and ``vector`` are not read nor written) also the
     Gauss-Newton sums of ``gain[t] * m + bias[t] - r`` under Cauchy weights of that scale:
     ``system[t]`` (6, 6) and ``vector[t]`` (6,) over the unknowns ``(x0, x1, x2, y0, y1, y2)``,
     the moving coordinates of the triangle's vertices. Each thread writes its triangles' rows
@@ -589,8 +590,8 @@ def align_sums(ref_tris, mov_tris, ref, mov, gain, bias, scale, moments, system,
             continue
         _affine(ref_tris[t], mov_tris[t], m)
         _affine(ref_tris[t], _UNIT, b)
-        a_t = gain[t]
-        c_t = bias[t]
+        a_t = gain[t] if solve else 1.0
+        c_t = bias[t] if solve else 0.0
         m00, m01, m02, m10, m11, m12 = m[0, 0], m[0, 1], m[0, 2], m[1, 0], m[1, 1], m[1, 2]
         b00, b01, b02, b10, b11, b12 = b[0, 0], b[0, 1], b[0, 2], b[1, 0], b[1, 1], b[1, 2]
         n = s_m = s_r = s_mm = s_mr = s_rr = 0.0

@@ -346,12 +346,13 @@ def register(
         None if progress is None else (lambda f: report("optimizing", f)))
     corrections = None
     if made is not None:
+        given = np.array(origins) == "client"
         # After the swaps: on the first mesh, whose diagonals cross the depth steps, right
         # vertices' triangles gained by moving with the other surface (Middlebury's frame
         # worse on three pairs of four, cones 0.991 -> 1.036 px; 0.982 after the swaps).
         corrections = contradicted_vertices(
             images, mesh.reference, mesh.moving, mesh.triangles,
-            ~tri_report.extrapolated & (np.array(origins) != "client"),
+            ~tri_report.extrapolated & ~given,
             witnesses=~tri_report.extrapolated, epsilon=opts.epsilon,
             epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
         border = tri_report.extrapolated
@@ -372,10 +373,8 @@ def register(
         aligned = aligned_vertices(
             level, mesh.reference, moving_v,
             align_vertices(level.reference_values.reshape(level.shape), level.moving,
-                           mesh.reference, moving_v, mesh.triangles,
-                           np.array(origins) != "client", scale=scale),
-            mesh.triangles, epsilon=opts.epsilon, epsilon_pixels=opts.epsilon_pixels,
-            cost=opts.cost, scale=scale)
+                           mesh.reference, moving_v, mesh.triangles, ~given, scale=scale),
+            mesh.triangles, cost=opts.cost, scale=scale)
         moving_v[aligned.vertices] = aligned.moving
         corrections = corrections + aligned
         if len(corrections.vertices):

@@ -93,8 +93,7 @@ def test_normalized_images_forget_gain_and_offset() -> None:
 
 def _gate(reference, moving, ref_v, before, after, tris):  # type: ignore[no-untyped-def]
     return aligned_vertices(prepare_images(reference, moving, DEFAULTS.bins), ref_v, before,
-                            after, tris, epsilon=DEFAULTS.epsilon,
-                            epsilon_pixels=DEFAULTS.epsilon_pixels)
+                            after, tris)
 
 
 def test_the_gate_keeps_moves_to_the_truth_and_sends_moves_away_back() -> None:
