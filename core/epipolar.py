@@ -415,7 +415,12 @@ def estimate_projective_fundamental(
     params.isParallel = False
     r = np.ascontiguousarray(X[:, 2:], dtype=np.float64)
     m = np.ascontiguousarray(X[:, :2], dtype=np.float64)
-    F, _ = cv2.findFundamentalMat(r, m, params)
+    try:
+        F, _ = cv2.findFundamentalMat(r, m, params)
+    except cv2.error:
+        # OpenCV's USAC asserts on some degenerate samples (pairs repeated, all on one plane)
+        # where it would otherwise find no model.
+        F = None
     if F is None or F.shape != (3, 3) or not np.all(np.isfinite(F)):
         raise InputError("no projective fundamental matrix fits the point pairs", "points")
     F = F / np.linalg.norm(F)

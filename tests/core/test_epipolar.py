@@ -175,6 +175,30 @@ def test_too_few_or_degenerate_pairs_are_an_input_error(kind):
         estimate_fundamental(bad, bad, kind)
 
 
+#: 16 pairs SIFT returned on a synthetic box (1024 x 768), two of them twice, all on one
+#: homography: OpenCV's USAC asserted on them with seeds 0 and 1.
+DEGENERATE = np.array([
+    [44.368, 299.647, 142.967, 293.12], [57.797, 11.407, 243.511, 43.887],
+    [65.808, 11.77, 251.926, 44.827], [74.388, 10.353, 259.549, 44.555],
+    [126.431, 738.116, 76.799, 696.125], [141.005, 749.849, 87.669, 710.083],
+    [584.353, 664.083, 546.318, 700.459], [596.123, 647.283, 563.976, 686.073],
+    [615.44, 647.088, 584.931, 689.951], [738.023, 564.782, 699.34, 702.584],
+    [738.023, 564.782, 699.34, 702.584], [819.538, 345.679, 898.639, 424.255],
+    [819.538, 345.679, 898.639, 424.255], [822.914, 343.884, 901.282, 423.838],
+    [853.19, 214.629, 975.481, 300.6], [873.876, 231.62, 993.678, 319.62]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_projective_fit_of_a_degenerate_set_is_a_model_or_an_input_error(seed):
+    try:
+        model = estimate_projective_fundamental(DEGENERATE[:, :2], DEGENERATE[:, 2:], THRESHOLD,
+                                                seed=seed)
+    except InputError as exc:
+        assert "no projective fundamental matrix" in str(exc)
+    else:
+        assert model.matrix.shape == (3, 3)
+
+
 def test_affine_pairs_without_parallax_are_all_kept():
     """Pairs related by one 2-D affine map leave the hyperplane undetermined: keep them all."""
     rng = np.random.default_rng(9)
