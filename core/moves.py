@@ -6,9 +6,10 @@ current mesh (:class:`core.refine.Guide`), and the mesh is built again over the 
 pairs. *Swaps* are the optimizer's changes of the triangulation (:mod:`core.optimize`), recorded
 step by step with their gain. *Vertex* moves change a vertex's moving position after the
 swaps, on the same path as the insertions (:mod:`core.correct`): a measured vertex the images
-contradict, an extrapolated border vertex searched for along its epipolar line; each recorded
-with its gain. Every move's name and reason go into ``mesh.json`` and
-``convergence.json``, and every mesh vertex says which move (or the matcher) put it there.
+contradict, an extrapolated border vertex searched for along its epipolar line, every vertex
+aligned; each recorded with its gain; the swaps then run once more. Every move's name and
+reason go into ``mesh.json`` and ``convergence.json``, and every mesh vertex says which move
+(or the matcher) put it there.
 Adding an insertion source is one entry here.
 """
 

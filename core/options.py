@@ -70,7 +70,9 @@ class RegistrationOptions(BaseModel):
         "line around its extrapolations, moved where its triangles gain as much (the 'border' "
         "move). Last, every vertex but the client's moves together, by at most 2 px, so that "
         "the images agree through the mesh over all its pixels (a direct photometric "
-        "alignment), kept where its triangles' consistency does not fall (the 'align' move). "
+        "alignment), kept where its triangles' consistency does not fall (the 'align' move); "
+        "then the optimizer runs once more over the moved mesh. On this path the swaps look at "
+        "the images reduced to at most 640 px a side, as the verdict does. "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
         "alone.",

@@ -28,7 +28,12 @@ from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.moves import MOVES, Search, inserted_mask, insertions
 from pwlreg.core.optimize import SearchResult
-from pwlreg.core.optimizers import OPTIMIZERS, after_vertex_moves
+from pwlreg.core.optimizers import (
+    OPTIMIZERS,
+    after_vertex_moves,
+    optimize_again,
+    optimize_on_level,
+)
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
@@ -341,11 +346,17 @@ def register(
     t = time.perf_counter()
     report("optimizing", 0.0)
     # Without a caller to tell, the compiled search is not interrupted to report.
-    search = OPTIMIZERS[opts.optimizer](
-        mesh, images, opts,
-        None if progress is None else (lambda f: report("optimizing", f)))
+    optimizing = None if progress is None else (lambda f: report("optimizing", f))
     corrections = None
-    if made is not None:
+    if made is None:
+        search = OPTIMIZERS[opts.optimizer](mesh, images, opts, optimizing)
+    else:
+        # Without client points the swaps, as the vertex moves, look at the images at the
+        # verdict's scale: the second search after the moves then costs what the first saves
+        # (the 1024 x 768 city's optimizing stage 0.185 s against 0.198 with one search on the
+        # images).
+        swaps_level = level if level.bins == images.bins else reduced(images, SCORING_SIDE)[0]
+        mesh, search = optimize_on_level(mesh, images, swaps_level, scale, opts, optimizing)
         given = np.array(origins) == "client"
         # After the swaps: on the first mesh, whose diagonals cross the depth steps, right
         # vertices' triangles gained by moving with the other surface (Middlebury's frame
@@ -380,7 +391,8 @@ def register(
         if len(corrections.vertices):
             moved = Mesh(mesh.reference, moving_v, mesh.triangles)
             search = after_vertex_moves(search, images, mesh, moved, corrections.vertices)
-            mesh = moved
+            mesh, search = optimize_again(search, moved, images, swaps_level, scale, opts,
+                                          elapsed=time.perf_counter() - t)
     timings["optimization_s"] = time.perf_counter() - t
     report("optimizing", 1.0)
 

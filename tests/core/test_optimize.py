@@ -8,9 +8,16 @@ from scipy.spatial import Delaunay
 
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.optimize import QuadScorer, TriangleCache, greedy_search
-from pwlreg.core.optimizers import after_vertex_moves, keep_initial
+from pwlreg.core.optimizers import (
+    OPTIMIZERS,
+    after_vertex_moves,
+    keep_initial,
+    optimize_again,
+    optimize_on_level,
+)
+from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.raster import quantize
-from pwlreg.core.similarity import prepare_images
+from pwlreg.core.similarity import prepare_images, reduced
 from pwlreg.core.triangulation import initial_mesh
 from tests.core.synthetic import book_points, open_book, texture
 
@@ -377,3 +384,59 @@ def test_the_mi_after_vertex_moves_is_that_of_a_whole_pass():
     # An optimizer that keeps no histogram: the whole mesh is scored.
     blind = after_vertex_moves(replace(search, histogram=None), images, mesh, moved, vertices)
     assert (blind.final_mi, blind.final_nmi) == (whole.final_mi, whole.final_nmi)
+
+
+def _doubled_book() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The open book at twice its size: images, reference and moving points."""
+    ref, mov = open_book()
+    rp, mp = book_points()
+    up = [cv2.resize(im, None, fx=2, fy=2, interpolation=cv2.INTER_CUBIC) for im in (ref, mov)]
+    return up[0], up[1], (rp + 0.5) * 2 - 0.5, (mp + 0.5) * 2 - 0.5
+
+
+def test_optimizing_on_a_reduced_level_swaps_the_crease_and_reports_on_the_images():
+    ref, mov, rp, mp = _doubled_book()
+    images = prepare_images(ref, mov, 16)
+    level, scale = reduced(images, 200)
+    assert scale == 0.5
+    mesh, _ = initial_mesh(rp, mp, 25)
+    crossing = [e for e in mesh.internal_edges() if _crosses(mesh.reference, e, 200.5)]
+    assert crossing
+    before = keep_initial(mesh, images, None, None)
+    out, result = optimize_on_level(mesh, images, level, scale, RegistrationOptions(), None)
+    assert [e for e in out.internal_edges() if _crosses(out.reference, e, 200.5)] == []
+    np.testing.assert_array_equal(out.reference, mesh.reference)
+    assert result.steps and result.steps[0].mi != pytest.approx(before.initial_mi)  # level's
+    # The figures the result reports are the images', the final ones updated triangle by
+    # triangle: the same integers as a whole pass.
+    after = keep_initial(out, images, None, None)
+    assert (result.initial_mi, result.initial_nmi) == (before.initial_mi, before.initial_nmi)
+    np.testing.assert_array_equal(result.histogram, after.histogram)
+    assert (result.final_mi, result.final_nmi) == (after.final_mi, after.final_nmi)
+    # At scale 1 the level is the images: the optimizer runs on the mesh itself.
+    same, direct = optimize_on_level(mesh, images, images, 1.0, RegistrationOptions(), None)
+    assert same is mesh and direct.steps
+
+
+def test_the_optimizer_runs_again_after_the_vertex_moves_within_its_budget():
+    ref, mov = open_book()
+    rp, mp = book_points()
+    images = prepare_images(ref, mov, 16)
+    mesh, _ = initial_mesh(rp, mp, 25)
+    crossing = [e for e in mesh.internal_edges() if _crosses(mesh.reference, e)]
+    assert len(crossing) >= 2
+    one = RegistrationOptions(max_iterations=1)
+    first = OPTIMIZERS["greedy"](mesh, images, one, None)
+    assert len(first.steps) == 1
+    # The budget is the options' in all: one more swap, numbered after the first search's.
+    two = RegistrationOptions(max_iterations=2)
+    out, again = optimize_again(first, mesh, images, images, 1.0, two, elapsed=5.0)
+    assert [s.iteration for s in again.steps] == [1, 2]
+    assert again.steps[0] == first.steps[0] and again.steps[1].elapsed_s >= 5.0
+    out, again = optimize_again(first, mesh, images, images, 1.0, RegistrationOptions(),
+                                elapsed=5.0)
+    assert [e for e in out.internal_edges() if _crosses(out.reference, e)] == []
+    assert [s.iteration for s in again.steps] == list(range(1, len(again.steps) + 1))
+    assert again.initial_mi == first.initial_mi and again.final_mi > first.final_mi
+    whole = keep_initial(out, images, None, None)
+    assert (again.final_mi, again.final_nmi) == (whole.final_mi, whole.final_nmi)
