@@ -96,7 +96,7 @@ BORDER_TOLERANCE = 1.0
 #: ``"mutual check"``) are counted only: a failed track or a descriptor without a mutual
 #: match is not a pair.
 LISTED_AUTOMATIC = (
-    "duplicate", "thinned", "ambiguous", "disagreement", "low texture", "unverifiable", "epipolar",
+    "thinned", "ambiguous", "disagreement", "low texture", "unverifiable", "epipolar",
     "neighbours", "spread",
 )
 
@@ -626,13 +626,7 @@ def match_sift(
     ref = from_level(pa[qi[mutual]], sa)
     mov = from_level(pb[ti[mutual]], sb)
     score = 1.0 - d1[mutual] / np.maximum(d2[mutual], 1e-12)
-    # SIFT gives a keypoint per dominant orientation: the same pair twice counts twice in the
-    # robust fits (and OpenCV's USAC asserted on such a set of 16 pairs, 2 doubled).
-    _, first = np.unique(np.column_stack([ref, mov]), axis=0, return_index=True)
-    once = np.zeros(len(ref), bool)
-    once[first] = True
-    rejected["duplicate"] = len(ref) - len(first)
-    return Matches(ref, mov, score, "sift", counts, rejected).drop(once, "duplicate")
+    return Matches(ref, mov, score, "sift", counts, rejected)
 
 
 # --- spread ---------------------------------------------------------------------------------------

@@ -223,9 +223,6 @@ def test_sift_reports_ratio_and_mutual_rejections(planar_pair):
     m = match_sift(ref, mov, 2000)
     assert m.counts["matched"] + m.rejected["ratio test"] <= m.counts["detected"]
     assert m.counts["consistent"] == m.counts["matched"] - m.rejected["mutual check"]
-    # A keypoint per orientation: the same pair is returned once.
-    assert len(m.reference) == m.counts["consistent"] - m.rejected["duplicate"]
-    assert len(np.unique(np.column_stack([m.reference, m.moving]), axis=0)) == len(m.reference)
 
 
 # --- dropped pairs, one by one -------------------------------------------------------------------

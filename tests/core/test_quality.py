@@ -142,11 +142,10 @@ def test_a_mesh_off_over_a_sixth_of_its_area_is_not_good():
 
 
 def test_pairs_thinned_before_the_checks_do_not_count_as_failed():
-    # A copy turned half a turn: tracking fails, SIFT matches about 1500 distinct pairs, of
-    # which only those the checks can afford (1.5 x max_points) are checked; every checked
-    # pair passes.
+    # A copy turned half a turn: tracking fails, SIFT matches about 2000 pairs, of which only
+    # those the checks can afford are checked; every checked pair passes.
     reference = texture((240, 320), 3)
-    r = register(reference, reference[::-1, ::-1].copy(), options={"max_points": 900})
+    r = register(reference, reference[::-1, ::-1].copy())
     assert r.points.source == "sift"
     assert r.points.rejected["thinned"] > r.points.counts["checked"]
     assert r.quality.figures["inlier_share"] > 0.9
