@@ -35,10 +35,14 @@ Optimizer = Callable[
 ]
 
 
-def _information(mesh: Mesh, images: ScoringImages) -> tuple[float, float, np.ndarray]:
-    """Global MI (bits), NMI and joint histogram of ``mesh`` (one pass over its pixels)."""
+def _information(
+    mesh: Mesh, images: ScoringImages, scale: float = 1.0
+) -> tuple[float, float, np.ndarray]:
+    """Global MI (bits), NMI and joint histogram of ``mesh`` (one pass over its pixels) on
+    ``images`` reduced by ``scale`` (:func:`core.similarity.reduced`)."""
     tris = mesh.triangles
-    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
+    hist, _ = triangle_statistics(images, to_level(mesh.reference[tris], scale),
+                                  to_level(mesh.moving[tris], scale))
     total = hist.sum(axis=0)
     mi, nmi = (float(v) for v in mutual_information(total, images.bins))
     return mi, nmi, total
@@ -54,10 +58,12 @@ def keep_initial(
 
 
 def after_vertex_moves(
-    search: SearchResult, images: ScoringImages, before: Mesh, after: Mesh, vertices: np.ndarray
+    search: SearchResult, images: ScoringImages, before: Mesh, after: Mesh, vertices: np.ndarray,
+    *, scale: float = 1.0,
 ) -> SearchResult:
     """``search`` with the final MI and NMI of ``after``, the mesh ``before`` (the one the search
-    ended on) with the moving positions of ``vertices`` changed.
+    ended on) with the moving positions of ``vertices`` changed, on the images the search
+    scored (``images``, reduced by ``scale`` from the meshes' pixels).
 
     The triangles partition the pixels, so the joint histogram of ``after`` is the search's
     less the histograms of the triangles around ``vertices`` on ``before`` plus theirs on
@@ -65,12 +71,13 @@ def after_vertex_moves(
     triangles alone. Without the search's histogram, the whole mesh is scored.
     """
     if search.histogram is None:
-        mi, nmi, hist = _information(after, images)
+        mi, nmi, hist = _information(after, images, scale)
         return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
     tris = after.triangles
     around = tris[np.isin(tris, vertices).any(axis=1)]
-    old, _ = triangle_statistics(images, before.reference[around], before.moving[around])
-    new, _ = triangle_statistics(images, after.reference[around], after.moving[around])
+    old, new = (triangle_statistics(images, to_level(m.reference[around], scale),
+                                    to_level(m.moving[around], scale))[0]
+                for m in (before, after))
     hist = search.histogram + new.sum(axis=0) - old.sum(axis=0)
     mi, nmi = (float(v) for v in mutual_information(hist, images.bins))
     return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
@@ -78,49 +85,25 @@ def after_vertex_moves(
 
 def optimize_on_level(
     mesh: Mesh,
-    images: ScoringImages,
     level: ScoringImages,
     scale: float,
     options: RegistrationOptions,
     progress: ProgressFn | None,
-    *,
-    histogram: np.ndarray | None = None,
 ) -> tuple[Mesh, SearchResult]:
-    """The options' optimizer on ``level``, ``images`` reduced by ``scale``
-    (:func:`core.similarity.reduced`; ``images`` itself at scale 1): the mesh with the
-    triangles it chose, and its result.
-
-    The result's initial and final MI and NMI, and its histogram, are those of ``images``
-    (``histogram``, when given, is that of ``mesh`` there: the final one then costs the
-    changed triangles alone); its steps' are measured on ``level``, as the pyramid's passes'
-    are on their images.
-    """
+    """The options' optimizer on ``level``, the images reduced by ``scale`` from the mesh's
+    pixels (:func:`core.similarity.reduced`): the mesh with the triangles it chose (``mesh``
+    itself, changed in place, at scale 1), and its result, whose figures are ``level``'s."""
     optimizer = OPTIMIZERS[options.optimizer]
-    if level is images:
-        return mesh, optimizer(mesh, images, options, progress)
-    if histogram is None:
-        _, _, histogram = _information(mesh, images)
-    mi, nmi = (float(v) for v in mutual_information(histogram, images.bins))
+    if scale == 1.0:
+        return mesh, optimizer(mesh, level, options, progress)
     scaled = Mesh(to_level(mesh.reference, scale), to_level(mesh.moving, scale), mesh.triangles)
     result = optimizer(scaled, level, options, progress)
-    out = Mesh(mesh.reference, mesh.moving, scaled.triangles)
-    # The triangles partition the pixels: those the search removed out, those it made in.
-    old, new = (set(map(tuple, np.sort(t, axis=1).tolist())) for t in (mesh.triangles,
-                                                                      out.triangles))
-    for sign, tris in ((-1, old - new), (1, new - old)):
-        if tris:
-            t = np.array(sorted(tris))
-            hist, _ = triangle_statistics(images, out.reference[t], out.moving[t])
-            histogram = histogram + sign * hist.sum(axis=0)
-    final_mi, final_nmi = (float(v) for v in mutual_information(histogram, images.bins))
-    return out, replace(result, initial_mi=mi, initial_nmi=nmi, final_mi=final_mi,
-                        final_nmi=final_nmi, histogram=histogram)
+    return Mesh(mesh.reference, mesh.moving, scaled.triangles), result
 
 
 def optimize_again(
     search: SearchResult,
     mesh: Mesh,
-    images: ScoringImages,
     level: ScoringImages,
     scale: float,
     options: RegistrationOptions,
@@ -134,13 +117,11 @@ def optimize_again(
 
     The first search ranked the diagonals by vertices the moves then changed (Middlebury's
     frame 0.494 / 0.325 / 0.924 / 1.105 px before this second search, 0.481 / 0.319 / 0.888
-    / 1.066 after). ``search``'s histogram must be that of ``mesh`` on ``images``
-    (:func:`after_vertex_moves`).
+    / 1.066 after).
     """
     budget = max(options.max_iterations - len(search.steps), 0)
     mesh, again = optimize_on_level(
-        mesh, images, level, scale, options.model_copy(update={"max_iterations": budget}), None,
-        histogram=search.histogram)
+        mesh, level, scale, options.model_copy(update={"max_iterations": budget}), None)
     first = len(search.steps)
     steps = [replace(s, iteration=first + k + 1, elapsed_s=s.elapsed_s + elapsed)
              for k, s in enumerate(again.steps)]

@@ -352,11 +352,11 @@ def register(
         search = OPTIMIZERS[opts.optimizer](mesh, images, opts, optimizing)
     else:
         # Without client points the swaps, as the vertex moves, look at the images at the
-        # verdict's scale: the second search after the moves then costs what the first saves
-        # (the 1024 x 768 city's optimizing stage 0.185 s against 0.198 with one search on the
-        # images).
+        # verdict's scale (and so do the MI figures): the second search after the moves then
+        # costs less than the first saves (bench.auto_speed, the 1024 x 768 city: 1.72 x the
+        # filing's time, 1.93 x with one search on the images and none after the moves).
         swaps_level = level if level.bins == images.bins else reduced(images, SCORING_SIDE)[0]
-        mesh, search = optimize_on_level(mesh, images, swaps_level, scale, opts, optimizing)
+        mesh, search = optimize_on_level(mesh, swaps_level, scale, opts, optimizing)
         given = np.array(origins) == "client"
         # After the swaps: on the first mesh, whose diagonals cross the depth steps, right
         # vertices' triangles gained by moving with the other surface (Middlebury's frame
@@ -390,8 +390,9 @@ def register(
         corrections = corrections + aligned
         if len(corrections.vertices):
             moved = Mesh(mesh.reference, moving_v, mesh.triangles)
-            search = after_vertex_moves(search, images, mesh, moved, corrections.vertices)
-            mesh, search = optimize_again(search, moved, images, swaps_level, scale, opts,
+            search = after_vertex_moves(search, swaps_level, mesh, moved, corrections.vertices,
+                                        scale=scale)
+            mesh, search = optimize_again(search, moved, swaps_level, scale, opts,
                                           elapsed=time.perf_counter() - t)
     timings["optimization_s"] = time.perf_counter() - t
     report("optimizing", 1.0)
