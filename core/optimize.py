@@ -69,9 +69,6 @@ class SearchResult:
         Why the search ended.
     evaluations : int
         Number of candidate swaps scored.
-    histogram : ndarray of int64, shape (M * M,), or None
-        Joint histogram of the final mesh on the scoring images, from which ``final_mi`` was
-        computed; None when the optimizer does not keep it.
     """
 
     initial_mi: float
@@ -81,7 +78,6 @@ class SearchResult:
     steps: list[SwapStep] = field(default_factory=list)
     stopped_because: str = ""
     evaluations: int = 0
-    histogram: np.ndarray | None = field(default=None, repr=False)
 
 
 def _triple(t: Iterable[int]) -> Triple:
@@ -470,7 +466,6 @@ def greedy_search(
                 delta=delta, mi=mi_k, nmi=nmi_k, elapsed_s=elapsed,
                 move="pair" if move else "swap"))
     result.final_mi, result.final_nmi = (float(v) for v in mutual_information(global_hist, bins))
-    result.histogram = global_hist
     result.evaluations = int(state[kernels.STATE_EVALUATIONS])
     result.stopped_because = kernels.SEARCH_STOPS[int(state[kernels.STATE_STOPPED])]
     return result

@@ -35,59 +35,24 @@ Optimizer = Callable[
 ]
 
 
-def _as_searched(triangles: np.ndarray) -> np.ndarray:
-    """Each triangle's vertices in increasing order, as the compiled search counts them: the
-    map of a triangle's pixels, computed from another corner, can round a sample across a
-    bin's edge (a sliver of a halved image, 3e-5 bits after 361 swaps)."""
-    return np.sort(triangles, axis=1)
-
-
-def _information(
-    mesh: Mesh, images: ScoringImages, scale: float = 1.0
-) -> tuple[float, float, np.ndarray]:
-    """Global MI (bits), NMI and joint histogram of ``mesh`` (one pass over its pixels) on
-    ``images`` reduced by ``scale`` (:func:`core.similarity.reduced`)."""
-    tris = _as_searched(mesh.triangles)
-    hist, _ = triangle_statistics(images, to_level(mesh.reference[tris], scale),
-                                  to_level(mesh.moving[tris], scale))
-    total = hist.sum(axis=0)
-    mi, nmi = (float(v) for v in mutual_information(total, images.bins))
-    return mi, nmi, total
+def _information(mesh: Mesh, images: ScoringImages) -> tuple[float, float]:
+    """Global MI (bits) and NMI of ``mesh`` (one pass over its pixels)."""
+    # Each triangle's vertices in increasing order, as the compiled search counts them: the map
+    # of a triangle's pixels, computed from another corner, can round a sample across a bin's
+    # edge (a sliver of a halved image, 3e-5 bits after 361 swaps).
+    tris = np.sort(mesh.triangles, axis=1)
+    hist, _ = triangle_statistics(images, mesh.reference[tris], mesh.moving[tris])
+    mi, nmi = (float(v) for v in mutual_information(hist.sum(axis=0), images.bins))
+    return mi, nmi
 
 
 def keep_initial(
     mesh: Mesh, images: ScoringImages, options: RegistrationOptions, progress: ProgressFn | None
 ) -> SearchResult:
     """No optimization: the initial mesh, with its global MI (bits) and NMI."""
-    mi, nmi, hist = _information(mesh, images)
+    mi, nmi = _information(mesh, images)
     return SearchResult(initial_mi=mi, initial_nmi=nmi, final_mi=mi, final_nmi=nmi,
-                        stopped_because="optimizer none", histogram=hist)
-
-
-def after_vertex_moves(
-    search: SearchResult, images: ScoringImages, before: Mesh, after: Mesh, vertices: np.ndarray,
-    *, scale: float = 1.0,
-) -> SearchResult:
-    """``search`` with the final MI and NMI of ``after``, the mesh ``before`` (the one the search
-    ended on) with the moving positions of ``vertices`` changed, on the images the search
-    scored (``images``, reduced by ``scale`` from the meshes' pixels).
-
-    The triangles partition the pixels, so the joint histogram of ``after`` is the search's
-    less the histograms of the triangles around ``vertices`` on ``before`` plus theirs on
-    ``after``: the same integers as a pass over the whole mesh, at the cost of those
-    triangles alone. Without the search's histogram, the whole mesh is scored.
-    """
-    if search.histogram is None:
-        mi, nmi, hist = _information(after, images, scale)
-        return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
-    tris = _as_searched(after.triangles)
-    around = tris[np.isin(tris, vertices).any(axis=1)]
-    old, new = (triangle_statistics(images, to_level(m.reference[around], scale),
-                                    to_level(m.moving[around], scale))[0]
-                for m in (before, after))
-    hist = search.histogram + new.sum(axis=0) - old.sum(axis=0)
-    mi, nmi = (float(v) for v in mutual_information(hist, images.bins))
-    return replace(search, final_mi=mi, final_nmi=nmi, histogram=hist)
+                        stopped_because="optimizer none")
 
 
 def optimize_on_level(
@@ -133,7 +98,7 @@ def optimize_again(
     steps = [replace(s, iteration=first + k + 1, elapsed_s=s.elapsed_s + elapsed)
              for k, s in enumerate(again.steps)]
     return mesh, replace(search, steps=search.steps + steps, final_mi=again.final_mi,
-                         final_nmi=again.final_nmi, histogram=again.histogram,
+                         final_nmi=again.final_nmi,
                          evaluations=search.evaluations + again.evaluations,
                          stopped_because=again.stopped_because)
 

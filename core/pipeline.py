@@ -30,7 +30,6 @@ from pwlreg.core.moves import MOVES, Search, inserted_mask, insertions
 from pwlreg.core.optimize import SearchResult
 from pwlreg.core.optimizers import (
     OPTIMIZERS,
-    after_vertex_moves,
     optimize_again,
     optimize_on_level,
 )
@@ -389,10 +388,9 @@ def register(
         moving_v[aligned.vertices] = aligned.moving
         corrections = corrections + aligned
         if len(corrections.vertices):
-            moved = Mesh(mesh.reference, moving_v, mesh.triangles)
-            search = after_vertex_moves(search, swaps_level, mesh, moved, corrections.vertices,
-                                        scale=scale)
-            mesh, search = optimize_again(search, moved, swaps_level, scale, opts,
+            # The search after the moves scores the whole moved mesh: its final MI is theirs.
+            mesh, search = optimize_again(search, Mesh(mesh.reference, moving_v, mesh.triangles),
+                                          swaps_level, scale, opts,
                                           elapsed=time.perf_counter() - t)
     timings["optimization_s"] = time.perf_counter() - t
     report("optimizing", 1.0)
