@@ -24,7 +24,7 @@ OpenCV's ``findFundamentalMat(ref, mov)`` convention. Residuals are in pixels.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -36,120 +36,7 @@ from pwlreg.core.errors import InputError
 #: vote against a wrong sample (affine: 4 + 2; projective: 7 + 3, OpenCV needs 8 for polishing).
 MIN_PAIRS = {"affine": 6, "projective": 10}
 
-#: Degrees of freedom of each model (the affine hyperplane; a rank-2 3x3 matrix up to scale).
-DEGREES = {"affine": 4, "projective": 7}
-
-#: Entries of ``F`` (row-major) each model may change: the affine one has zeros elsewhere.
-FREE_ENTRIES = {"affine": np.array([2, 5, 6, 7, 8]), "projective": np.arange(9)}
-
 EpipolarKind = Literal["affine", "projective"]
-
-
-@dataclass(frozen=True)
-class LineUncertainty:
-    """First-order covariance of a fundamental matrix, in Hartley-normalised coordinates.
-
-    Attributes
-    ----------
-    normalised : np.ndarray
-        (3, 3) the model's matrix ``F^ = T_mov^-T F T_ref^-1``, unit Frobenius norm.
-    covariance : np.ndarray
-        (9, 9) covariance of ``F^`` (row-major entries) in the directions the pairs constrain.
-    unconstrained : np.ndarray
-        (9, K) directions of ``F^`` the pairs leave free (all of them on one plane; too few
-        pairs): a line that depends on them is unknown.
-    to_reference, to_moving : np.ndarray
-        (3, 3) ``T_ref``, ``T_mov``: pixels to normalised coordinates.
-    """
-
-    normalised: np.ndarray
-    covariance: np.ndarray
-    unconstrained: np.ndarray
-    to_reference: np.ndarray
-    to_moving: np.ndarray
-
-    def spread(self, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
-        """Standard deviation (pixels) of each moving point's distance to its reference
-        point's line, :meth:`EpipolarModel.line_spread`."""
-        xr = np.column_stack([ref, np.ones(len(ref))]) @ self.to_reference.T
-        xm = np.column_stack([mov, np.ones(len(mov))]) @ self.to_moving.T
-        # The distance x'^T F x / |(F x)_12| in pixels: F x = T_mov^T F^ x^.
-        normal = (xr @ self.normalised.T @ self.to_moving)[:, :2]
-        gradient = (xm[:, :, None] * xr[:, None, :]).reshape(-1, 9)
-        variance = np.einsum("ni,ij,nj->n", gradient, self.covariance, gradient)
-        free = (np.linalg.norm(gradient @ self.unconstrained, axis=1)
-                > 1e-9 * np.linalg.norm(gradient, axis=1))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            spread = np.sqrt(np.maximum(variance, 0.0)) / np.hypot(normal[:, 0], normal[:, 1])
-        return np.where(np.isfinite(spread) & ~free, spread, np.inf)
-
-    def rescaled(self, reference: np.ndarray, moving: np.ndarray) -> LineUncertainty:
-        """The same uncertainty for pixels ``p`` that the maps ``reference`` and ``moving``
-        (3, 3) take to the pixels it was estimated in."""
-        return LineUncertainty(self.normalised, self.covariance, self.unconstrained,
-                               self.to_reference @ reference, self.to_moving @ moving)
-
-
-def _hartley(points: np.ndarray) -> np.ndarray:
-    """The similarity taking ``points`` to zero mean and a mean distance of sqrt(2) (the
-    identity for no points)."""
-    if not len(points):
-        return np.eye(3)
-    centre = points.mean(axis=0)
-    scale = math.sqrt(2) / max(float(np.mean(np.hypot(*(points - centre).T))), 1e-12)
-    return np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1]])
-
-
-def line_uncertainty(
-    kind: EpipolarKind, matrix: np.ndarray, ref: np.ndarray, mov: np.ndarray
-) -> LineUncertainty:
-    """First-order covariance of ``matrix`` from the pairs it was fitted to.
-
-    Each pair's epipolar constraint, weighted to its Sampson distance, is linear in the
-    matrix's entries (the rows of the eight-point algorithm, Hartley-normalised); the
-    covariance is ``sigma^2 (J^T J)^-1`` on the entries the model may change, across the
-    matrix's own direction (its scale is free), with ``sigma^2`` the residuals' mean square
-    over the degrees of freedom left (Hartley & Zisserman, 2nd ed., sec. 5.2 and 11.9). A
-    direction the pairs do not constrain (all on one plane) gets an infinite variance.
-
-    Parameters
-    ----------
-    kind : {"affine", "projective"}
-    matrix : np.ndarray
-        (3, 3) the model, ``x_mov^T F x_ref = 0`` in pixels.
-    ref, mov : np.ndarray
-        (N, 2) its inliers.
-
-    Returns
-    -------
-    LineUncertainty
-        Every direction unconstrained with no more pairs than :data:`DEGREES`.
-    """
-    t_ref, t_mov = _hartley(ref), _hartley(mov)
-    f = np.linalg.inv(t_mov).T @ matrix @ np.linalg.inv(t_ref)
-    f = f / np.linalg.norm(f)
-    xr = np.column_stack([ref, np.ones(len(ref))]) @ t_ref.T
-    xm = np.column_stack([mov, np.ones(len(mov))]) @ t_mov.T
-    fx, ftx = xr @ f.T, xm @ f
-    weight = 1.0 / np.sqrt(fx[:, 0] ** 2 + fx[:, 1] ** 2 + ftx[:, 0] ** 2 + ftx[:, 1] ** 2)
-    free = FREE_ENTRIES[kind]
-    rows = ((xm[:, :, None] * xr[:, None, :]).reshape(-1, 9) * weight[:, None])[:, free]
-    left = len(ref) - DEGREES[kind]
-    covariance = np.zeros((9, 9))
-    embed = np.eye(9)[:, free]
-    if left <= 0 or not np.all(np.isfinite(rows)):
-        return LineUncertainty(f, covariance, embed, t_ref, t_mov)
-    sigma2 = float(np.sum((rows @ f.ravel()[free]) ** 2)) / left
-    values, vectors = np.linalg.eigh(rows.T @ rows)
-    # The direction of f itself is its scale, not an uncertainty.
-    scale = np.argmax(np.abs(vectors.T @ f.ravel()[free]))
-    others = np.arange(len(values)) != scale
-    # Relative to the largest: the rounding of a constraint the pairs do not make.
-    constrained = others & (values > 1e-10 * values.max())
-    covariance[np.ix_(free, free)] = ((vectors[:, constrained] * (sigma2 / values[constrained]))
-                                      @ vectors[:, constrained].T)
-    open_ = others & ~constrained
-    return LineUncertainty(f, covariance, embed @ vectors[:, open_], t_ref, t_mov)
 
 
 @dataclass(frozen=True)
@@ -174,13 +61,6 @@ class EpipolarModel:
         Number of minimal samples drawn (affine) or reported 0 when OpenCV does not say.
     rms : float
         Root mean square residual of the inliers, pixels.
-    uncertainty : LineUncertainty or None
-        The first-order covariance of the matrix, estimated from the inliers' residuals: how
-        well they determine each line (:meth:`line_spread`). None for a model given rather
-        than estimated, whose lines are taken as exact.
-    inlier_spread : float
-        Median :meth:`line_spread` over the inliers, pixels (0 for a given model): how well
-        the lines are known where the pairs are.
     """
 
     kind: EpipolarKind
@@ -190,8 +70,6 @@ class EpipolarModel:
     num_inliers: int
     iterations: int
     rms: float
-    uncertainty: LineUncertainty | None = field(default=None, repr=False, compare=False)
-    inlier_spread: float = 0.0
 
     def residuals(self, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
         """Residual of each pair, pixels.
@@ -206,24 +84,6 @@ class EpipolarModel:
         """Boolean mask of the pairs whose residual is at most :attr:`threshold`."""
         return self.residuals(ref, mov) <= self.threshold
 
-    def line_spread(self, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
-        """How far the epipolar line of each reference point may lie from where the model puts
-        it, at the moving point, pixels: the standard deviation of the point's distance to the
-        line, to first order in the matrix's covariance (:class:`LineUncertainty`).
-
-        Near the pairs the model was fitted to it is a fraction of a pixel; where they leave
-        the geometry open (all but a few pairs on one plane, or the pairs in one corner of the
-        image) it grows away from them, and a search along the line there finds lookalikes
-        rather than the match (a gable whose pairs all lay on the ground: its true match 5 px
-        off the line, a lookalike 117 px along it). 0 for a given model (:attr:`uncertainty`
-        None).
-        """
-        ref = np.asarray(ref, dtype=np.float64).reshape(-1, 2)
-        mov = np.asarray(mov, dtype=np.float64).reshape(-1, 2)
-        if self.uncertainty is None:
-            return np.zeros(len(ref))
-        return self.uncertainty.spread(ref, mov)
-
     def to_dict(self) -> dict:
         """JSON-able summary (``matrix`` as nested lists, convention ``x_mov^T F x_ref = 0``)."""
         return {
@@ -235,7 +95,6 @@ class EpipolarModel:
             "num_inliers": int(self.num_inliers),
             "iterations": int(self.iterations),
             "rms_px": float(self.rms),
-            "line_spread_px": float(self.inlier_spread),
         }
 
 
@@ -595,8 +454,7 @@ def _finish(
     r = sampson_distance(matrix, ref, mov)
     inl = r <= threshold
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) if np.any(inl) else math.nan
-    ref_in, mov_in = np.asarray(ref, np.float64)[inl], np.asarray(mov, np.float64)[inl]
-    model = EpipolarModel(
+    return EpipolarModel(
         kind=kind,
         matrix=matrix,
         threshold=float(threshold),
@@ -604,8 +462,4 @@ def _finish(
         num_inliers=int(np.count_nonzero(inl)),
         iterations=int(iterations),
         rms=rms,
-        uncertainty=line_uncertainty(kind, matrix, ref_in, mov_in),
     )
-    if not len(ref_in):
-        return model
-    return replace(model, inlier_spread=float(np.median(model.line_spread(ref_in, mov_in))))

@@ -477,11 +477,6 @@ EPI_SEARCHED = 3
 #: Nearest vertices whose displacements, applied at a point, span its search segment.
 EPI_NEIGHBOURS = 8
 
-#: Largest uncertainty (standard deviation, full-resolution pixels) of a match's distance to
-#: its epipolar line (:meth:`core.epipolar.EpipolarModel.line_spread`): beyond it the true
-#: match may lie off the band searched, and the search finds a lookalike on the line.
-EPI_SPREAD = 1.5
-
 #: Largest distance (pixels of the level) between a point and where its match's reverse
 #: search along the reference's epipolar line lands.
 LR_PX = 1.0
@@ -585,8 +580,7 @@ def epipolar_pairs(
     surfaces around it), with a patch shaped by the local affine map of the mesh. A match must
     have no rival peak along the line (repeated texture), correlate well, peak sharply along
     it (:data:`EPI_SHARPNESS`), come back to its point when searched for the other way, lie
-    within the model's threshold of the line, where the matcher's pairs fix the line
-    (:data:`EPI_SPREAD`), not be contradicted by its neighbours, and --
+    within the model's threshold of the line, not be contradicted by its neighbours, and --
     when it corrects the mesh by more than :data:`SMALL_PX` -- raise the mutual information of
     the triangle it splits.
 
@@ -613,8 +607,7 @@ def epipolar_pairs(
     Insertion
     """
     counts = {"candidates": 0, "unique": 0, "correlated": 0, "peaked": 0, "confirmed": 0,
-              "epipolar": 0, "determined": 0, "neighbours": 0, "rejected by mi": 0,
-              "inserted": 0}
+              "epipolar": 0, "neighbours": 0, "rejected by mi": 0, "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
@@ -728,10 +721,6 @@ def epipolar_pairs(
     ok = confirmed.copy()
     ok[confirmed] = model.inliers(reference[confirmed], moving[confirmed])
     counts["epipolar"] = int(ok.sum())
-    # A line the matcher's pairs leave open where the match lies holds lookalikes, not the
-    # match: the search along it can only find what lies on it.
-    ok[ok] = model.line_spread(reference[ok], moving[ok]) <= EPI_SPREAD
-    counts["determined"] = int(ok.sum())
     # The matcher's own last check: a new pair that the local map of its neighbours (the
     # vertices and the other new pairs) contradicts, with fewer than two of them moving like
     # it, is dropped (an occluded point matched to a lookalike on the line).

@@ -367,13 +367,9 @@ def _scaled_model(model: EpipolarModel, scale: np.ndarray, mean: float) -> Epipo
     mean factor, exact when both images were reduced alike)."""
 
     # x_level = (x + 0.5) / s - 0.5 in each image.
-    left, right = pixel_scaling(scale[1]).T, pixel_scaling(scale[0])
-    f = left @ model.matrix @ right
+    f = pixel_scaling(scale[1]).T @ model.matrix @ pixel_scaling(scale[0])
     if model.kind == "affine":
         f = f / np.sqrt(f[2, 0] ** 2 + f[2, 1] ** 2 + f[0, 2] ** 2 + f[1, 2] ** 2)
     else:
         f = f / np.linalg.norm(f)
-    return replace(model, matrix=f, threshold=model.threshold * mean, rms=model.rms * mean,
-                   inlier_spread=model.inlier_spread * mean,
-                   uncertainty=None if model.uncertainty is None
-                   else model.uncertainty.rescaled(right, pixel_scaling(scale[1])))
+    return replace(model, matrix=f, threshold=model.threshold * mean, rms=model.rms * mean)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,13 +11,10 @@ from hypothesis import strategies as st
 
 from pwlreg.core.epipolar import (
     MIN_PAIRS,
-    EpipolarModel,
     estimate_affine_fundamental,
     estimate_fundamental,
     estimate_projective_fundamental,
     fit_affine_fundamental,
-    line_uncertainty,
-    pixel_scaling,
     sampson_distance,
 )
 from pwlreg.core.errors import InputError
@@ -238,69 +234,3 @@ def test_affine_msac_recovers_any_affine_pair(rx, ry, rz, seed):
     model = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=seed)
     assert model.num_inliers == 60
     assert np.max(model.residuals(ref, mov)) < 1e-6
-
-
-def _two_views(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The 3-D points ``X`` seen by :func:`perspective_scene`'s two cameras."""
-    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
-    R, t = rotation(0.02, 0.17, 0.01), np.array([-1.2, 0.1, 0.2])
-
-    def project(P):
-        x = X @ P[:, :3].T + P[:, 3]
-        return x[:, :2] / x[:, 2:3]
-
-    return (project(K @ np.hstack([np.eye(3), np.zeros((3, 1))])),
-            project(K @ np.hstack([R, t[:, None]])))
-
-
-@pytest.mark.parametrize("seed", range(3))
-def test_line_spread_tells_where_the_pairs_determine_the_lines(seed: int) -> None:
-    # Pairs spread through a 3-D cloud fix every line. Pairs on one plane and one off it fix
-    # the lines of the plane's points where they cross their matches (every line of the
-    # family the plane allows passes there) but not off the plane.
-    rng = np.random.default_rng(seed)
-    cloud = rng.uniform(-1, 1, (200, 3)) * [3, 2, 1.5] + [0, 0, 8]
-    ground = cloud * [1, 0, 1] + [0, 2, 0]
-    ref_c, mov_c = _two_views(cloud)
-    ref_g, mov_g = _two_views(ground)
-
-    def noisy(a: np.ndarray) -> np.ndarray:
-        return a + rng.normal(0, NOISE, a.shape)
-
-    spread = estimate_projective_fundamental(noisy(ref_c[:100]), noisy(mov_c[:100]))
-    assert spread.line_spread(ref_c[100:], mov_c[100:]).max() < 0.6
-    assert 0.05 < spread.inlier_spread < 0.2
-    planar = estimate_projective_fundamental(noisy(np.vstack([ref_g[:100], ref_c[:1]])),
-                                             noisy(np.vstack([mov_g[:100], mov_c[:1]])))
-    assert np.median(planar.line_spread(ref_g[100:], mov_g[100:])) < 0.5
-    assert np.median(planar.line_spread(ref_c[100:], mov_c[100:])) > 2.0
-    ref, mov = affine_scene(rng, 80)
-    affine = estimate_affine_fundamental(noisy(ref), noisy(mov))
-    assert affine.line_spread(ref, mov).max() < 0.5
-
-
-def test_a_given_model_is_exact_and_one_from_too_few_pairs_is_not() -> None:
-    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
-    given = EpipolarModel("affine", F, 1.5, 0, 0, 0, 0.0)
-    points = np.array([[10.0, 20.0], [300.0, 40.0]])
-    np.testing.assert_array_equal(given.line_spread(points, points), 0.0)
-    ref = np.random.default_rng(0).uniform(0, 300, (4, 2))
-    few = replace(given, uncertainty=line_uncertainty("affine", F, ref, ref))
-    assert np.all(np.isinf(few.line_spread(points, points)))
-
-
-def test_the_uncertainty_of_a_level_serves_the_full_images() -> None:
-    # A model fitted on images halved (core.scaled registers large pairs on such levels), its
-    # uncertainty carried to full-resolution pixels: the spread there is twice the level's.
-    rng = np.random.default_rng(4)
-    ref, mov, _ = perspective_scene(rng, 120)
-    ref, mov = ref + rng.normal(0, NOISE, ref.shape), mov + rng.normal(0, NOISE, mov.shape)
-    level = estimate_projective_fundamental(ref[:80], mov[:80])
-    halve = pixel_scaling(2.0)
-    full = level.uncertainty.rescaled(halve, halve)
-
-    def to_full(p: np.ndarray) -> np.ndarray:
-        return (p + 0.5) * 2.0 - 0.5
-
-    np.testing.assert_allclose(full.spread(to_full(ref[80:]), to_full(mov[80:])),
-                               2.0 * level.line_spread(ref[80:], mov[80:]), rtol=1e-6)
