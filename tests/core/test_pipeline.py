@@ -9,8 +9,12 @@ import pytest
 
 from pwlreg.core.errors import InputError
 from pwlreg.core.io import read_image
+from pwlreg.core.mesh import Mesh
+from pwlreg.core.optimizers import keep_initial
 from pwlreg.core.pipeline import STAGES, register
+from pwlreg.core.quality import SCORING_SIDE
 from pwlreg.core.results import write_outputs
+from pwlreg.core.similarity import prepare_images, reduced, to_level
 from tests.core.synthetic import book_points, open_book, texture
 
 
@@ -141,11 +145,6 @@ def test_threaded_kernels_wait_passively_unless_told_otherwise() -> None:
 def test_without_points_the_swaps_and_their_figures_are_the_reduced_images():
     # 1280 x 960: the automatic path ranks its swaps, before and after the vertex moves, on the
     # images halved to the verdict's scale, and reports the MI of its final mesh there.
-    from pwlreg.core.mesh import Mesh
-    from pwlreg.core.optimizers import keep_initial
-    from pwlreg.core.quality import SCORING_SIDE
-    from pwlreg.core.similarity import prepare_images, reduced, to_level
-
     reference, moving = open_book(size=(1280, 960), crease=640.0, seed=3)
     r = register(reference, moving, options={"extent": "hull"})
     assert r.points.source != "client" and r.corrections is not None
