@@ -36,7 +36,7 @@ from pwlreg.core.optimizers import (
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import SHARP_ODD_MAP, guide, levels, sharpened, vertex_maps
+from pwlreg.core.refine import guide, levels
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -332,22 +332,6 @@ def register(
             current = None
             ref_meas = np.concatenate([ref_meas, new_ref])
             mov_meas = np.concatenate([mov_meas, new_mov])
-            mesh, tri_report = build(ref_meas, mov_meas, origin)
-        # The pairs to a fraction of a pixel (the matcher's and the insertion's, never the
-        # client's), where the mesh maps one surface around them.
-        maps, spread = vertex_maps(mesh.reference, mesh.moving, mesh.triangles)
-        _, vertex = cKDTree(mesh.reference).query(ref_meas)
-        own = np.array([o != "client" for o in origin])
-        which = np.zeros(len(mesh.reference), bool)
-        which[vertex[own]] = True
-        which &= ~tri_report.extrapolated & (spread <= SHARP_ODD_MAP)
-        moving_v = mesh.moving.copy()
-        moving_v[which] = sharpened(grey, mesh.reference[which], mesh.moving[which],
-                                    maps[which], model=conjugate.epipolar)
-        moved = (moving_v != mesh.moving).any(axis=1)
-        insertion["sharpened"] = int(moved.sum())
-        if moved.any():
-            mov_meas = np.where(own[:, None], moving_v[vertex], mov_meas)
             mesh, tri_report = build(ref_meas, mov_meas, origin)
     # Which move (or the matcher) put each vertex there: the mesh deduplicated and reordered
     # the measured pairs, and added the extrapolated border.
