@@ -1,7 +1,7 @@
 """Compiled inner loops (numba): the fill rule, per-triangle histograms and the warp; and the
 matchers' loops over points: correlation surfaces and their peaks (:func:`template_peaks`),
-correlation along epipolar lines (:func:`strip_correlation`) and the thinning of corners
-(:func:`spaced`).
+correlation along epipolar lines (:func:`strip_correlation`), the affine fits of windows that
+sharpen the pairs (:func:`window_fits`) and the thinning of corners (:func:`spaced`).
 
 These are the hot paths of pwlreg. Each loops over the pixels of each triangle once, computing
 the affine map, the bilinear sample and the histogram bin on the fly, so no per-pixel array is
@@ -1226,6 +1226,198 @@ def trimmed_affine_fits(offsets, moving, near, min_px, ridge):  # type: ignore[n
         _affine_fit(offsets[i], moving[i], weight, ridge, m, maps[i])
         spread[i] = _fit_misses(offsets[i], moving[i], near[i], maps[i], res, kept)
     return maps, spread
+
+
+@njit(cache=True, inline="always")
+def _bilinear_at(image, x, y):  # type: ignore[no-untyped-def]
+    """``image`` at ``(x, y)``, bilinear; the caller keeps ``(x, y)`` inside."""
+    x0 = min(int(x), image.shape[1] - 2)
+    y0 = min(int(y), image.shape[0] - 2)
+    fx = x - x0
+    fy = y - y0
+    top = image[y0, x0] + fx * (image[y0, x0 + 1] - image[y0, x0])
+    bottom = image[y0 + 1, x0] + fx * (image[y0 + 1, x0 + 1] - image[y0 + 1, x0])
+    return top + fy * (bottom - top)
+
+
+@njit(cache=True)
+def _cholesky(system, factor):  # type: ignore[no-untyped-def]
+    """Cholesky factor (lower) of the symmetric ``system``; False where a pivot falls under
+    ``1e-9`` of its diagonal (a window whose gradients leave a direction of the map open)."""
+    n = system.shape[0]
+    for j in range(n):
+        s = system[j, j]
+        for k in range(j):
+            s -= factor[j, k] * factor[j, k]
+        if s <= 1e-9 * system[j, j] or s <= 0.0:
+            return False
+        factor[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            s = system[i, j]
+            for k in range(j):
+                s -= factor[i, k] * factor[j, k]
+            factor[i, j] = s / factor[j, j]
+    return True
+
+
+@njit(cache=True)
+def _cholesky_solve(factor, rhs, out):  # type: ignore[no-untyped-def]
+    n = rhs.shape[0]
+    for i in range(n):
+        s = rhs[i]
+        for k in range(i):
+            s -= factor[i, k] * out[k]
+        out[i] = s / factor[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= factor[k, i] * out[k]
+        out[i] = s / factor[i, i]
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def window_fits(reference, moving, points, maps, half, iterations, tolerance, centres,
+                scores):  # type: ignore[no-untyped-def]
+    """Affine fits of reference windows onto the moving image (:func:`core.refine.sharpened`).
+
+    Pair ``k``'s window is the reference sampled at ``points[k] + (u, v)``, ``u, v`` in
+    ``-half .. half``; ``maps[k]`` (2 x 3) takes ``(u, v, 1)`` to its first guess in the moving
+    image. The fit maximises the zero-mean normalised correlation of the window with the moving
+    image under an affine map by Gauss-Newton steps of the inverse compositional form (Baker
+    and Matthews 2004), the gain and offset eliminated as in Evangelidis and Psarakis's
+    enhanced correlation coefficient (which OpenCV's ``findTransformECC`` maximises by forward
+    steps, each resampling the image's gradients): the window's gradients and the 6 x 6 system
+    are computed once per pair, and a step samples the moving image once per window pixel. It
+    stops after ``iterations`` steps or when a step moves the window's centre by less than
+    ``tolerance``. ``centres[k]`` is where the fit takes ``(0, 0)`` and ``scores[k]`` its
+    correlation there: -1 for a window too flat to fix the map, -2 where a sample leaves the
+    images. Pairs are shared among numba's threads.
+    """
+    side = 2 * half + 1
+    size = side * side
+    h, w = moving.shape
+    rh, rw = reference.shape
+    for k in prange(points.shape[0]):
+        centres[k, 0] = maps[k, 0, 2]
+        centres[k, 1] = maps[k, 1, 2]
+        scores[k] = -2.0
+        px, py = points[k, 0], points[k, 1]
+        if (px - half - 1 < 0 or py - half - 1 < 0 or px + half + 1 > rw - 1
+                or py + half + 1 > rh - 1):
+            continue
+        # The window with a pixel of margin, sampled once: the gradients are its central
+        # differences.
+        patch = np.empty((side + 2, side + 2))
+        for a in range(side + 2):
+            for b in range(side + 2):
+                patch[a, b] = _bilinear_at(reference, px - half - 1 + b, py - half - 1 + a)
+        # Per pixel the window's value and its steepest-descent row, the map's derivative
+        # (columns: x by u, v, 1, then y by u, v, 1); their sums give the means that the
+        # zero-mean correlation takes off.
+        tpl = np.empty(size)
+        sd = np.empty((size, 6))
+        system = np.zeros((6, 6))
+        sd_sum = np.zeros(6)
+        sd_t = np.zeros(6)
+        t_sum = 0.0
+        t_sq = 0.0
+        i = 0
+        for a in range(side):
+            v = float(a - half)
+            for b in range(side):
+                u = float(b - half)
+                t = patch[a + 1, b + 1]
+                gx = 0.5 * (patch[a + 1, b + 2] - patch[a + 1, b])
+                gy = 0.5 * (patch[a + 2, b + 1] - patch[a, b + 1])
+                tpl[i] = t
+                sd[i, 0], sd[i, 1], sd[i, 2] = gx * u, gx * v, gx
+                sd[i, 3], sd[i, 4], sd[i, 5] = gy * u, gy * v, gy
+                t_sum += t
+                t_sq += t * t
+                for j in range(6):
+                    sd_sum[j] += sd[i, j]
+                    sd_t[j] += sd[i, j] * t
+                    for m in range(j + 1):
+                        system[j, m] += sd[i, j] * sd[i, m]
+                i += 1
+        t_var = t_sq - t_sum * t_sum / size
+        for j in range(6):
+            sd_t[j] -= sd_sum[j] * t_sum / size
+            for m in range(j + 1):
+                system[j, m] -= sd_sum[j] * sd_sum[m] / size
+                system[m, j] = system[j, m]
+        factor = np.zeros((6, 6))
+        if t_var <= 1e-9 * size or not _cholesky(system, factor):
+            scores[k] = -1.0
+            continue
+        a00, a01, tx = maps[k, 0, 0], maps[k, 0, 1], maps[k, 0, 2]
+        a10, a11, ty = maps[k, 1, 0], maps[k, 1, 1], maps[k, 1, 2]
+        sd_i = np.empty(6)
+        delta = np.empty(6)
+        last = iterations
+        for step in range(iterations + 1):
+            # The window's corners bound where it samples under an affine map.
+            outside = False
+            for cu in (-half, half):
+                for cv in (-half, half):
+                    x = a00 * cu + a01 * cv + tx
+                    y = a10 * cu + a11 * cv + ty
+                    if x < 0.0 or y < 0.0 or x > w - 1.0 or y > h - 1.0:
+                        outside = True
+            if outside:
+                scores[k] = -2.0
+                break
+            s_i = 0.0
+            s_ii = 0.0
+            s_ti = 0.0
+            sd_i[:] = 0.0
+            i = 0
+            for a in range(side):
+                v = float(a - half)
+                x = a01 * v + tx - a00 * half
+                y = a11 * v + ty - a10 * half
+                for _ in range(side):
+                    value = _bilinear_at(moving, x, y)
+                    s_i += value
+                    s_ii += value * value
+                    s_ti += tpl[i] * value
+                    for j in range(6):
+                        sd_i[j] += sd[i, j] * value
+                    x += a00
+                    y += a10
+                    i += 1
+            i_var = s_ii - s_i * s_i / size
+            if i_var <= 1e-9 * size:
+                scores[k] = -1.0
+                break
+            s_ti -= t_sum * s_i / size
+            scores[k] = s_ti / np.sqrt(t_var * i_var)
+            centres[k, 0], centres[k, 1] = tx, ty
+            if step == last:
+                break
+            # The gain that best takes the moving samples onto the window, then the step of
+            # the window's map that best explains what is left.
+            gain = s_ti / i_var
+            for j in range(6):
+                sd_i[j] = gain * (sd_i[j] - sd_sum[j] * s_i / size) - sd_t[j]
+            _cholesky_solve(factor, sd_i, delta)
+            # The moving map composed with the inverse of the window's step.
+            d00, d01, d10, d11 = 1.0 + delta[0], delta[1], delta[3], 1.0 + delta[4]
+            det = d00 * d11 - d01 * d10
+            i00, i01, i10, i11 = d11 / det, -d01 / det, -d10 / det, d00 / det
+            dx = -(i00 * delta[2] + i01 * delta[5])
+            dy = -(i10 * delta[2] + i11 * delta[5])
+            n00 = a00 * i00 + a01 * i10
+            n01 = a00 * i01 + a01 * i11
+            n10 = a10 * i00 + a11 * i10
+            n11 = a10 * i01 + a11 * i11
+            ntx = a00 * dx + a01 * dy + tx
+            nty = a10 * dx + a11 * dy + ty
+            moved = np.hypot(ntx - tx, nty - ty)
+            a00, a01, a10, a11, tx, ty = n00, n01, n10, n11, ntx, nty
+            if moved < tolerance:
+                # One more pass scores the final map.
+                last = step + 1
 
 
 # --- the greedy edge-swap search ------------------------------------------------------------------

@@ -36,7 +36,7 @@ from pwlreg.core.optimizers import (
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import guide, levels
+from pwlreg.core.refine import guide, levels, sharpen_vertices
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -338,6 +338,16 @@ def register(
     _, nearest = cKDTree(quantize(ref_meas)).query(mesh.reference)
     origins = [origin[i] for i in nearest]
     origins = ["frame" if e else o for o, e in zip(origins, tri_report.extrapolated, strict=True)]
+    if insertion is not None:
+        # The pairs to a fraction of a pixel (the matcher's and the insertion's, never the
+        # client's).
+        movable = np.array([o not in ("client", "frame") for o in origins])
+        sharp = sharpen_vertices(grey, mesh.reference, mesh.moving, mesh.triangles, movable,
+                                 model=conjugate.epipolar)
+        moved = (sharp != mesh.moving).any(axis=1)
+        insertion["sharpened"] = int(moved.sum())
+        if moved.any():
+            mesh = Mesh(mesh.reference, sharp, mesh.triangles)
     initial_triangles = mesh.triangles
     timings["triangulation_s"] = time.perf_counter() - t
     report("triangulating", 1.0)

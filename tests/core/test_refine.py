@@ -5,11 +5,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from pwlreg.core import refine
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.extent import border_positions, local_affine_extrapolation
 from pwlreg.core.flow import flow_scale
 from pwlreg.core.io import convergence_document, mesh_document
-from pwlreg.core.kernels import spaced
+from pwlreg.core.kernels import spaced, window_fits
+from pwlreg.core.mesh import Mesh
 from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
 from pwlreg.core.refine import (
@@ -23,12 +25,15 @@ from pwlreg.core.refine import (
     guide,
     guided_pairs,
     levels,
+    sharpen_vertices,
+    sharpened,
     step_points,
+    vertex_maps,
 )
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import initial_mesh
 from pwlreg.core.warp import piecewise_map
-from tests.core.synthetic import book_map, box_front, open_book
+from tests.core.synthetic import book_map, book_points, box_front, open_book
 
 SIZE, CREASE = (320, 240), 150.0
 
@@ -213,6 +218,11 @@ def test_insertion_lowers_the_error_and_is_recorded() -> None:
     plain = register(ref_img, mov_img, points, {**options, "insert_vertices": "automatic"})
     refined = register(ref_img, mov_img, points, {**options, "insert_vertices": "always"})
     assert plain.insertion is None and not plain.inserted.any()  # client points are kept as sent
+    # Nor are they sharpened with the pairs the insertion adds.
+    client = np.array(refined.origins) == "client"
+    truth = np.column_stack(book_map(*refined.reference_vertices[client].T, CREASE))
+    assert np.abs(refined.moving_vertices[client] - truth).max() <= 1 / 256
+    assert refined.insertion["sharpened"] > 0
     assert refined.inserted.sum() == refined.insertion["inserted"] > 0
     assert len(refined.reference_vertices) == len(refined.points.reference) + refined.inserted.sum()
     assert _mean_epe(refined) < 0.5 * _mean_epe(plain)
@@ -457,3 +467,120 @@ def test_point_location_is_the_numpy_one(seed: int) -> None:
     got = _containing(v, tris, pts)
     assert (got >= 0).sum() > 100
     np.testing.assert_array_equal(got, _containing_numpy(v, tris, pts))
+
+
+def _book_pairs(n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reference points of the open book away from its crease and the frame, their true
+    moving points, and the book's linear map at each."""
+    rng = np.random.default_rng(seed)
+    ref = np.column_stack([rng.uniform(30, SIZE[0] - 30, 4 * n),
+                           rng.uniform(30, SIZE[1] - 60, 4 * n)])
+    ref = ref[np.abs(ref[:, 0] - CREASE) > 25][:n]
+    truth = np.column_stack(book_map(ref[:, 0], ref[:, 1], CREASE))
+    right = ref[:, 0] > CREASE
+    linear = np.where(right[:, None, None], [[0.65, 0.0], [0.35, 1.0]], np.eye(2))
+    return ref, truth, linear
+
+
+def test_sharpened_pairs_come_nearer_their_truth() -> None:
+    ref_img, mov_img = open_book(SIZE, CREASE, seed=3)
+    ref, truth, linear = _book_pairs(40, seed=1)
+    rng = np.random.default_rng(2)
+    off = rng.uniform(-0.6, 0.6, truth.shape)
+    off[0] = [3.0, 0.0]  # farther than a sharpened pair may move
+    found = sharpened(levels(ref_img, mov_img), ref, truth + off, linear, model=None)
+    before, after = np.hypot(*off.T), np.hypot(*(found - truth).T)
+    assert np.array_equal(found[0], truth[0] + off[0])
+    assert np.median(after[1:]) < 0.1 < np.median(before[1:]), np.median(after)
+    assert (after[1:] < before[1:]).mean() > 0.9
+    # Where the new positions are off their epipolar lines (here a pixel beside the true
+    # ones, with a tolerance of 0.01 px), the pairs stay where they were.
+    shifted = BOOK_MODEL.matrix + [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    strict = EpipolarModel(BOOK_MODEL.kind, shifted, threshold=0.01, num_pairs=0,
+                           num_inliers=0, iterations=0, rms=0.0)
+    kept = sharpened(levels(ref_img, mov_img), ref, truth + off, linear, model=strict)
+    assert np.array_equal(kept, truth + off)
+
+
+def test_vertex_maps_are_the_mean_of_the_triangles_around() -> None:
+    ref, mov = book_points(100.0)
+    mesh, _ = initial_mesh(ref, mov, 25.0)
+    maps, spread = vertex_maps(mesh.reference, mesh.moving, mesh.triangles)
+    left = mesh.reference[:, 0] < 70  # every triangle around them lies left of the crease
+    assert np.allclose(maps[left], np.eye(2), atol=1e-3) and np.all(spread[left] < 1e-3)
+    # Crease vertices have triangles on both pages (and across the fold): their maps differ.
+    crease = np.isclose(mesh.reference[:, 0], 100.0, atol=0.01)
+    assert crease.any() and np.all(spread[crease] > 0.15)
+
+
+def _textured(shape: tuple[int, int], seed: int) -> np.ndarray:
+    """Smoothed noise: texture at every scale the fits look at."""
+    noise = np.random.default_rng(seed).uniform(0, 255, shape).astype(np.float32)
+    return cv2.GaussianBlur(noise, (0, 0), 1.5) * 3.0 - 250.0
+
+
+def test_window_fits_recover_an_affine_map_as_opencv_does() -> None:
+    ref = _textured((160, 160), seed=4)
+    # The moving image is the reference under a known affine map, with another gain and offset.
+    true = np.array([[1.06, 0.08, 7.3], [-0.05, 0.97, -4.6]])
+    mov = cv2.warpAffine(ref, true, (160, 160), flags=cv2.INTER_CUBIC) * 0.6 + 30.0
+    rng = np.random.default_rng(5)
+    points = rng.uniform(40, 120, (20, 2))
+    # First guesses 0.8 px off, with the identity as the local map.
+    start = points @ true[:, :2].T + true[:, 2] + rng.uniform(-0.8, 0.8, points.shape)
+    maps = np.concatenate([np.tile(np.eye(2), (20, 1, 1)), start[:, :, None]], axis=2)
+    centres, scores = np.empty((20, 2)), np.empty(20)
+    window_fits(ref, mov.astype(np.float32), points, maps, 15, 10, 1e-4, centres, scores)
+    truth = points @ true[:, :2].T + true[:, 2]
+    error = np.hypot(*(centres - truth).T)
+    assert np.all(scores > 0.99) and error.max() < 0.05, error
+    # OpenCV's forward fit of the same windows lands at the same places.
+    for k in range(0, 20, 4):
+        window = cv2.getRectSubPix(ref, (31, 31), tuple(points[k]))
+        warp = maps[k].astype(np.float32).copy()
+        warp[:, 2] -= warp[:, :2] @ [15, 15]
+        _, warp = cv2.findTransformECC(window, mov.astype(np.float32), warp,
+                                       cv2.MOTION_AFFINE,
+                                       (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-6),
+                                       None, 1)
+        opencv = warp[:, :2] @ [15, 15] + warp[:, 2]
+        assert np.hypot(*(centres[k] - opencv)) < 0.05
+
+
+def test_window_fits_refuse_flat_windows_and_the_border() -> None:
+    ref = _textured((100, 100), seed=6)
+    ref[:, 60:] = 80.0
+    points = np.array([[30.0, 50.0], [80.0, 50.0], [8.0, 50.0]])
+    maps = np.concatenate([np.tile(np.eye(2), (3, 1, 1)), points[:, :, None]], axis=2)
+    centres, scores = np.empty((3, 2)), np.empty(3)
+    window_fits(ref, ref, points, maps, 15, 5, 1e-3, centres, scores)
+    assert scores[0] > 0.999 and np.allclose(centres[0], points[0], atol=1e-3)
+    assert scores[1] == -1.0 and scores[2] == -2.0  # flat; the window leaves the image
+    assert np.array_equal(centres[1:], points[1:])
+
+
+def test_sharpened_vertices_fold_no_triangle(monkeypatch: pytest.MonkeyPatch) -> None:
+    ref = np.array([[0.0, 0.0], [40.0, 0.0], [0.0, 40.0], [40.0, 40.0], [20.0, 20.0]])
+    mesh, _ = initial_mesh(ref, ref + 3.0, 1.0)
+    moves = {4: [1.0, 0.5], 2: [0.5, -0.5], 3: [0.0, 1.0]}
+
+    def fitted(image_levels, reference, moving, linear, *, model):  # type: ignore[no-untyped-def]
+        index = cKDTree(mesh.reference).query(reference)[1]
+        return moving + np.array([moves.get(int(i), [0.0, 0.0]) for i in index])
+
+    monkeypatch.setattr(refine, "sharpened", fitted)
+    movable = np.array([True, True, True, False, True])
+    out = sharpen_vertices(None, mesh.reference, mesh.moving, mesh.triangles, movable,
+                           model=None)
+    assert np.allclose(out[[2, 4]], mesh.moving[[2, 4]] + [[0.5, -0.5], [1.0, 0.5]])
+    assert np.array_equal(out[3], mesh.moving[3])  # not movable
+    # Vertex 1 across the centre would fold its triangles: they keep their corners, the
+    # centre among them; vertex 2, on none of them, still moves.
+    moves[1] = [-45.0, 22.0]
+    out = sharpen_vertices(None, mesh.reference, mesh.moving, mesh.triangles, movable,
+                           model=None)
+    assert not Mesh(mesh.reference, out, mesh.triangles).reversed_slots()
+    around = np.unique(mesh.triangles[(mesh.triangles == 1).any(axis=1)])
+    assert 4 in around and 2 not in around
+    assert np.array_equal(out[around], mesh.moving[around])
+    assert np.allclose(out[2], mesh.moving[2] + [0.5, -0.5])

@@ -1,0 +1,160 @@
+"""The sharpening's fit against OpenCV's: ``python -m bench.sharpen [--seeds 6] [--repeat 3]``.
+
+Registers the trust suite's scenes of ``--seeds`` (without points, default options) and records
+every call of :func:`core.refine.sharpened` (the pairs, their local maps, the grey levels).
+Then, per method, moves the recorded pairs as the pipeline would (the same bounds: at most
+:data:`core.refine.SHARP_MOVE`, correlation :data:`core.refine.SHARP_CORRELATION`, the
+epipolar threshold) and reports the error of the right pairs (within 3 px of their truth) as
+matched and as moved, and the time of all the calls (best of ``--repeat``), with its ratio to
+the compiled fit:
+
+* ``compiled``: :func:`core.kernels.window_fits`, the product's;
+* ``opencv 10`` and ``opencv 50``: ``cv2.findTransformECC`` (``MOTION_AFFINE``) on each pair's
+  window, started from the same map, at most 10 iterations down to a rise of 1e-3, and at most
+  50 down to 1e-5.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+import cv2
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from bench import trust
+from pwlreg.core import refine
+from pwlreg.core.epipolar import EpipolarModel
+from pwlreg.core.errors import InputError
+from pwlreg.core.pipeline import register
+from pwlreg.core.refine import (
+    SHARP_CORRELATION,
+    SHARP_HALF,
+    SHARP_MOVE,
+    Levels,
+    from_level,
+    to_level,
+)
+
+Call = tuple[Levels, np.ndarray, np.ndarray, np.ndarray, EpipolarModel | None]
+
+
+def recorded(seeds: tuple[int, ...]) -> list[tuple[Call, np.ndarray]]:
+    """Each recorded call of :func:`core.refine.sharpened`, with the true moving positions of its
+    pairs (NaN where the truth has none)."""
+    calls: list[tuple[Call, np.ndarray]] = []
+    product = refine.sharpened
+    seen: list[Call] = []
+
+    def spy(image_levels, reference, moving, linear, *, model):  # type: ignore[no-untyped-def]
+        seen.append((image_levels, reference.copy(), moving.copy(), linear.copy(), model))
+        return product(image_levels, reference, moving, linear, model=model)
+
+    for case in trust.build_cases(seeds=seeds):
+        if case.group in ("unrelated", "partial overlap"):
+            continue
+        scene = case.make()
+        seen.clear()
+        refine.sharpened = spy
+        try:
+            register(scene.reference, scene.moving)
+        except InputError:  # too few reliable pairs: nothing sharpened
+            pass
+        finally:
+            refine.sharpened = product
+        for call in seen:
+            ref = call[1]
+            truth = np.column_stack([
+                map_coordinates(t, [ref[:, 1], ref[:, 0]], order=1, cval=np.nan)
+                for t in (scene.truth_x, scene.truth_y)])
+            calls.append((call, truth))
+    return calls
+
+
+def opencv(iterations: int, epsilon: float) -> Callable[..., np.ndarray]:
+    """:func:`core.refine.sharpened` with OpenCV's ECC fit in place of the compiled one."""
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, epsilon)
+    h = SHARP_HALF
+
+    def fitted(image_levels: Levels, reference: np.ndarray, moving: np.ndarray,
+               linear: np.ndarray, model: EpipolarModel | None) -> np.ndarray:
+        scale = image_levels.scale
+        ref_l = image_levels.reference.astype(np.float32)
+        mov_l = image_levels.moving.astype(np.float32)
+        points, matches = to_level(reference, scale), to_level(moving, scale)
+        kept, found = [], []
+        lh, lw = mov_l.shape
+        for k in np.flatnonzero(np.isfinite(linear).all(axis=(1, 2))):
+            # A crop with room to move: OpenCV takes the gradients of its whole input image.
+            reach = int(np.ceil(h * np.abs(linear[k]).sum(axis=1).max())) + 6
+            c = np.rint(matches[k]).astype(np.int64)
+            if c[0] < reach or c[1] < reach or c[0] + reach >= lw or c[1] + reach >= lh:
+                continue
+            corner = c - reach
+            crop = mov_l[corner[1]:c[1] + reach + 1, corner[0]:c[0] + reach + 1]
+            window = cv2.getRectSubPix(ref_l, (2 * h + 1, 2 * h + 1), tuple(points[k]))
+            shift = matches[k] - corner - linear[k] @ [h, h]
+            warp = np.hstack([linear[k], shift[:, None]]).astype(np.float32)
+            try:
+                score, warp = cv2.findTransformECC(window, crop, warp, cv2.MOTION_AFFINE,
+                                                   criteria, None, 1)
+            except cv2.error:  # a flat window, or the fit diverged
+                continue
+            centre = warp[:, :2] @ [h, h] + warp[:, 2] + corner
+            if score >= SHARP_CORRELATION and np.hypot(*(centre - matches[k])) <= SHARP_MOVE:
+                kept.append(k)
+                found.append(centre)
+        out = moving.copy()
+        if kept:
+            at, new = np.array(kept), from_level(np.array(found), scale)
+            if model is not None:
+                on_line = model.inliers(reference[at], new)
+                at, new = at[on_line], new[on_line]
+            out[at] = new
+        return out
+
+    return fitted
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="6", help="comma-separated scene seeds")
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args(argv)
+    calls = recorded(tuple(int(s) for s in args.seeds.split(",")))
+    methods: dict[str, Callable[..., np.ndarray]] = {
+        "compiled": lambda levels, ref, mov, lin, model: refine.sharpened(
+            levels, ref, mov, lin, model=model),
+        "opencv 10": opencv(10, 1e-3),
+        "opencv 50": opencv(50, 1e-5),
+    }
+    right = [np.isfinite(e) & (e < 3) for e in
+             (np.hypot(*(call[2] - truth).T) for call, truth in calls)]
+    pairs = sum(int(r.sum()) for r in right)
+    print(f"{len(calls)} calls, {sum(len(c[1]) for c, _ in calls)} pairs, {pairs} right "
+          f"(within 3 px of their truth)")
+    rows = {"as matched": (np.concatenate([np.hypot(*(c[2] - t).T)[r]
+                                           for (c, t), r in zip(calls, right, strict=True)]),
+                           None)}
+    for name, method in methods.items():
+        best = np.inf
+        for _ in range(args.repeat):
+            start = time.perf_counter()
+            out = [method(*call) for call, _ in calls]
+            best = min(best, time.perf_counter() - start)
+        errors = np.concatenate([np.hypot(*(o - t).T)[r]
+                                 for o, (_, t), r in zip(out, calls, right, strict=True)])
+        rows[name] = (errors, best)
+    compiled = rows["compiled"][1]
+    print("right pairs' error px: median / mean / 90th / 99th percentile; time of all calls")
+    for name, (errors, seconds) in rows.items():
+        q = np.percentile(errors, [50, 90, 99])
+        timing = "" if seconds is None else f"  {seconds:.3f} s  {seconds / compiled:.2f} x"
+        print(f"  {name:11s} {q[0]:.3f} / {errors.mean():.3f} / {q[1]:.3f} / {q[2]:.3f}{timing}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
