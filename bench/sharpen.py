@@ -2,7 +2,8 @@
 
 Registers the trust suite's scenes of ``--seeds`` (without points, default options) and records
 every call of :func:`core.refine.sharpened` (the pairs, their local maps, the grey levels).
-Then, per method, moves the recorded pairs as the pipeline would (the same bounds: at most
+Then, per method, moves the recorded pairs by :func:`core.refine.sharpened` with the method's
+fits in place of :func:`core.kernels.window_fits` (so the same bounds: at most
 :data:`core.refine.SHARP_MOVE`, correlation :data:`core.refine.SHARP_CORRELATION`, the
 epipolar threshold) and reports the error of the right pairs (within 3 px of their truth) as
 matched and as moved, and the time of all the calls (best of ``--repeat``), with its ratio to
@@ -30,12 +31,7 @@ from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.errors import InputError
 from pwlreg.core.pipeline import register
 from pwlreg.core.refine import (
-    SHARP_CORRELATION,
-    SHARP_HALF,
-    SHARP_MOVE,
     Levels,
-    from_level,
-    to_level,
 )
 
 Call = tuple[Levels, np.ndarray, np.ndarray, np.ndarray, EpipolarModel | None]
@@ -73,49 +69,40 @@ def recorded(seeds: tuple[int, ...]) -> list[tuple[Call, np.ndarray]]:
     return calls
 
 
-def opencv(iterations: int, epsilon: float) -> Callable[..., np.ndarray]:
-    """:func:`core.refine.sharpened` with OpenCV's ECC fit in place of the compiled one."""
+def opencv_fits(iterations: int, epsilon: float) -> Callable[..., None]:
+    """A stand-in for :func:`core.kernels.window_fits` (same arguments and outputs) that fits
+    each window with ``cv2.findTransformECC`` (``MOTION_AFFINE``), at most ``iterations``
+    iterations down to a rise of ``epsilon``."""
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, epsilon)
-    h = SHARP_HALF
 
-    def fitted(image_levels: Levels, reference: np.ndarray, moving: np.ndarray,
-               linear: np.ndarray, model: EpipolarModel | None) -> np.ndarray:
-        scale = image_levels.scale
-        ref_l = image_levels.reference.astype(np.float32)
-        mov_l = image_levels.moving.astype(np.float32)
-        points, matches = to_level(reference, scale), to_level(moving, scale)
-        kept, found = [], []
-        lh, lw = mov_l.shape
-        for k in np.flatnonzero(np.isfinite(linear).all(axis=(1, 2))):
+    def fits(reference: np.ndarray, moving: np.ndarray, points: np.ndarray, maps: np.ndarray,
+             half: int, _iterations: int, _tolerance: float, centres: np.ndarray,
+             scores: np.ndarray) -> None:
+        lh, lw = moving.shape
+        for k in range(len(points)):
+            linear, start = maps[k, :, :2], maps[k, :, 2]
+            centres[k], scores[k] = start, -2.0
             # A crop with room to move: OpenCV takes the gradients of its whole input image.
-            reach = int(np.ceil(h * np.abs(linear[k]).sum(axis=1).max())) + 6
-            c = np.rint(matches[k]).astype(np.int64)
+            reach = int(np.ceil(half * np.abs(linear).sum(axis=1).max())) + 6
+            c = np.rint(start).astype(np.int64)
             if c[0] < reach or c[1] < reach or c[0] + reach >= lw or c[1] + reach >= lh:
                 continue
             corner = c - reach
-            crop = mov_l[corner[1]:c[1] + reach + 1, corner[0]:c[0] + reach + 1]
-            window = cv2.getRectSubPix(ref_l, (2 * h + 1, 2 * h + 1), tuple(points[k]))
-            shift = matches[k] - corner - linear[k] @ [h, h]
-            warp = np.hstack([linear[k], shift[:, None]]).astype(np.float32)
+            crop = moving[corner[1]:c[1] + reach + 1, corner[0]:c[0] + reach + 1]
+            window = cv2.getRectSubPix(reference, (2 * half + 1, 2 * half + 1),
+                                       tuple(points[k]))
+            shift = start - corner - linear @ [half, half]
+            warp = np.hstack([linear, shift[:, None]]).astype(np.float32)
             try:
                 score, warp = cv2.findTransformECC(window, crop, warp, cv2.MOTION_AFFINE,
                                                    criteria, None, 1)
             except cv2.error:  # a flat window, or the fit diverged
+                scores[k] = -1.0
                 continue
-            centre = warp[:, :2] @ [h, h] + warp[:, 2] + corner
-            if score >= SHARP_CORRELATION and np.hypot(*(centre - matches[k])) <= SHARP_MOVE:
-                kept.append(k)
-                found.append(centre)
-        out = moving.copy()
-        if kept:
-            at, new = np.array(kept), from_level(np.array(found), scale)
-            if model is not None:
-                on_line = model.inliers(reference[at], new)
-                at, new = at[on_line], new[on_line]
-            out[at] = new
-        return out
+            centres[k] = warp[:, :2] @ [half, half] + warp[:, 2] + corner
+            scores[k] = score
 
-    return fitted
+    return fits
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -124,11 +111,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args(argv)
     calls = recorded(tuple(int(s) for s in args.seeds.split(",")))
-    methods: dict[str, Callable[..., np.ndarray]] = {
-        "compiled": lambda levels, ref, mov, lin, model: refine.sharpened(
-            levels, ref, mov, lin, model=model),
-        "opencv 10": opencv(10, 1e-3),
-        "opencv 50": opencv(50, 1e-5),
+    # The same bounds on every fit (refine.sharpened), each method's fits in place of the
+    # compiled ones.
+    methods: dict[str, Callable[..., None]] = {
+        "compiled": refine.window_fits,
+        "opencv 10": opencv_fits(10, 1e-3),
+        "opencv 50": opencv_fits(50, 1e-5),
     }
     right = [np.isfinite(e) & (e < 3) for e in
              (np.hypot(*(call[2] - truth).T) for call, truth in calls)]
@@ -138,12 +126,18 @@ def main(argv: list[str] | None = None) -> int:
     rows = {"as matched": (np.concatenate([np.hypot(*(c[2] - t).T)[r]
                                            for (c, t), r in zip(calls, right, strict=True)]),
                            None)}
-    for name, method in methods.items():
+    compiled_fits = refine.window_fits
+    for name, fits in methods.items():
         best = np.inf
-        for _ in range(args.repeat):
-            start = time.perf_counter()
-            out = [method(*call) for call, _ in calls]
-            best = min(best, time.perf_counter() - start)
+        refine.window_fits = fits
+        try:
+            for _ in range(args.repeat):
+                start = time.perf_counter()
+                out = [refine.sharpened(levels, ref, mov, lin, model=model)
+                       for (levels, ref, mov, lin, model), _ in calls]
+                best = min(best, time.perf_counter() - start)
+        finally:
+            refine.window_fits = compiled_fits
         errors = np.concatenate([np.hypot(*(o - t).T)[r]
                                  for o, (_, t), r in zip(out, calls, right, strict=True)])
         rows[name] = (errors, best)

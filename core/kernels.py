@@ -1240,6 +1240,8 @@ def _bilinear_at(image, x, y):  # type: ignore[no-untyped-def]
     return top + fy * (bottom - top)
 
 
+# numba's np.linalg.cholesky raises on a system that is not positive definite, which a window
+# too flat to fix the map gives (an exception inside a parallel loop), and allocates per call.
 @njit(cache=True)
 def _cholesky(system, factor):  # type: ignore[no-untyped-def]
     """Cholesky factor (lower) of the symmetric ``system``; False where a pivot falls under

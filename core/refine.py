@@ -813,7 +813,7 @@ def sharpened(
     levels) is fitted onto the moving level by :func:`core.kernels.window_fits` (the enhanced
     correlation coefficient of OpenCV's ``findTransformECC``, which gain and offset do not
     change; an affine warp starting from the pair and its local map; on the trust suite's pairs
-    as accurate as OpenCV's fit and 7 times faster: ``python -m bench.sharpen``), and the
+    as accurate as OpenCV's fit and 6 to 7 times faster: ``python -m bench.sharpen``), and the
     window's centre goes where the fit takes it -- unless it would move more than
     :data:`SHARP_MOVE`, the fit fails or correlates under :data:`SHARP_CORRELATION`, or its new
     position is beyond the model's threshold of its epipolar line.
