@@ -64,3 +64,19 @@ def test_the_share_is_reported_per_imaging_condition(capsys):
     assert "per lighting noise 4 blur 1 (3 cases): default 0.50 / 1" in out
     assert "aff nonmonotone noise 2 blur 0 (1 cases): default 0.80 / 0" in out
     assert len(out) == 3  # the title and the two conditions with cases
+
+
+def test_inserted_pairs_off_their_truth_are_counted():
+    h, w = 40, 50
+    xx, yy = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    truth_x, truth_y = xx + 2.0, yy.copy()  # the moving image is the reference shifted 2 px
+    truth_x[:, 40:] = np.nan  # unknown there
+    reference = np.array([[10.0, 10.0], [20.5, 15.5], [30.0, 30.0], [45.0, 20.0], [5.0, 5.0]])
+    moving = reference + [2.0, 0.0]
+    moving[1] += [0.0, 2.9]  # within the tolerance
+    moving[2] += [3.0, 1.0]  # 3.2 px off
+    inserted = np.array([True, True, True, True, False])
+    moving[4] += 10.0  # off, but matched, not inserted
+    # The fourth has no truth: three judged, one wrong.
+    assert beyond.wrong_inserted(reference, moving, inserted, truth_x, truth_y) == (1, 3)
+    assert beyond.wrong_inserted(reference, moving, np.zeros(5, bool), truth_x, truth_y) == (0, 0)
