@@ -34,6 +34,7 @@ from pwlreg.core.correct import (
 from pwlreg.core.correct import MOVE as CORRECT
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.refine import (
+    EPI_ALONE_AMBIGUITY,
     EPI_REACH,
     STEP_OFFSET,
     STEP_WINDOW,
@@ -151,8 +152,10 @@ MOVES: dict[str, Move] = {
         "either side of the mesh's prediction or the span of its neighbours' displacements if "
         "wider: "
         "correlated, peaked, without a rival peak, confirmed both ways, "
-        "not contradicted by its neighbours; corrections above 1.5 px also raised the mutual "
-        "information of the triangle they split",
+        "not contradicted by its neighbours (where none stands near enough to judge it and "
+        f"none moves like it, with no rival peak reaching {EPI_ALONE_AMBIGUITY:g} of the best); "
+        "corrections above "
+        "1.5 px also raised the mutual information of the triangle they split",
         _along_lines(None),
     ),
     "step": Move(

@@ -289,18 +289,56 @@ def neighbour_outliers(
             break
         fit = _local_fits(r, m, r[query], k=k, min_px=min_px, exclude_self=True)
         miss = np.linalg.norm(fit.predict(r[query]) - m[query], axis=1)
-        # Support: neighbours moving like the pair (up to a 10 % strain over their distance).
-        # Points beyond a depth step have their own side's neighbours for witnesses.
-        disp = m - r
-        gap = np.linalg.norm(disp[fit.nb] - disp[query, None, :], axis=2)
-        reach = np.maximum(min_px,
-                           0.1 * np.linalg.norm(r[fit.nb] - r[query, None, :], axis=2))
-        support = np.count_nonzero(fit.near & (gap <= reach), axis=1)
+        support = _support(r, m, query, fit, min_px)
         bad = fit.judged & (miss > min_px) & (miss > factor * fit.spread) & (support < 2)
         if not np.any(bad):
             break
         out[idx[query[bad]]] = True
     return out
+
+
+def unjudged_pairs(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    *,
+    wanted: np.ndarray,
+    k: int = 10,
+    min_px: float = 3.0,
+) -> np.ndarray:
+    """The ``wanted`` pairs that :func:`neighbour_outliers` (same ``k`` and ``min_px``) cannot
+    judge: fewer than five neighbours near enough to fit their map, and fewer than two of them
+    moving like the pair.
+
+    Such a pair stands alone in a gap of the others (a surface no other pair is on, or a
+    lookalike on a repeated texture whose neighbours are all far): nothing around it confirms
+    or contradicts it.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+        True for the wanted pairs that stand alone.
+    """
+    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
+    out = np.zeros(len(ref), bool)
+    query = np.flatnonzero(np.asarray(wanted, bool))
+    if not len(query) or len(ref) < 2:
+        return out
+    fit = _local_fits(ref, mov, ref[query], k=k, min_px=min_px, exclude_self=True)
+    out[query] = ~fit.judged & (_support(ref, mov, query, fit, min_px) < 2)
+    return out
+
+
+def _support(
+    ref: np.ndarray, mov: np.ndarray, query: np.ndarray, fit: _LocalFits, min_px: float
+) -> np.ndarray:
+    """Per query pair, its near neighbours moving like it (displacements within ``min_px`` or
+    10 % of their distance): points beyond a depth step have their own side's neighbours for
+    witnesses."""
+    disp = mov - ref
+    gap = np.linalg.norm(disp[fit.nb] - disp[query, None, :], axis=2)
+    reach = np.maximum(min_px, 0.1 * np.linalg.norm(ref[fit.nb] - ref[query, None, :], axis=2))
+    return np.count_nonzero(fit.near & (gap <= reach), axis=1)
 
 
 def resolved_by_anchors(

@@ -16,6 +16,7 @@ from pwlreg.core.moves import MOVES, insertions
 from pwlreg.core.pipeline import register
 from pwlreg.core.refine import (
     CORNER_QUALITY,
+    EPI_AMBIGUITY,
     MIN_SPACING,
     STEP_NEAR,
     STEP_OFFSET,
@@ -342,7 +343,40 @@ def test_epipolar_pairs_reach_a_surface_with_no_vertex(monkeypatch: pytest.Monke
     assert len(found_on_block()) == 0
 
 
-#: Rectified views: ``y' = y`` (``x_mov^T F x_ref = y - y'``).
+def test_a_pair_standing_alone_needs_a_clearer_peak(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The block of the test above with no vertex near it: its pairs are many and move alike,
+    # so none stands alone; made to, they must clear EPI_ALONE_AMBIGUITY instead of
+    # EPI_AMBIGUITY.
+    w, h = SIZE
+    moving = open_book(SIZE, CREASE, seed=4)[1]
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    block = (xs >= 120) & (xs < 200) & (ys >= 80) & (ys < 160)
+    reference = cv2.remap(moving, np.where(block, xs - 14.0, xs), np.where(block, ys + 14.0, ys),
+                          cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    grid = np.array([(x, y) for x in np.linspace(4, w - 5, 7) for y in np.linspace(4, h - 5, 5)])
+    ref = grid[~((grid[:, 0] > 105) & (grid[:, 0] < 215) & (grid[:, 1] > 65)
+                 & (grid[:, 1] < 175))]
+    mesh, _ = initial_mesh(ref, ref.copy(), 25.0)
+    none = np.zeros((0, 2))
+
+    def passed() -> int:  # the pairs through the neighbours' checks
+        return epipolar_pairs(guide(levels(reference, moving), mesh.reference, mesh.moving,
+                                    mesh.triangles),
+                              prepare_images(reference, moving, 16), BOOK_MODEL,
+                              added=(none, none), measured=len(ref), budget=len(ref),
+                              epsilon=0.01, epsilon_pixels=250.0).counts["neighbours"]
+
+    judged = passed()
+    assert judged >= 10
+    monkeypatch.setattr("pwlreg.core.refine.unjudged_pairs",
+                        lambda reference, moving, *, wanted: np.asarray(wanted, bool))
+    assert 0 < passed() < judged  # some rival peaks reach 0.8 (none 0.9: EPI_AMBIGUITY)
+    monkeypatch.setattr("pwlreg.core.refine.EPI_ALONE_AMBIGUITY", EPI_AMBIGUITY)
+    assert passed() == judged
+    monkeypatch.setattr("pwlreg.core.refine.EPI_ALONE_AMBIGUITY", 0.0)
+    assert passed() == 0
+
+
 RECTIFIED = EpipolarModel(
     "affine", np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]]), threshold=1.5,
     num_pairs=0, num_inliers=0, iterations=0, rms=0.0)

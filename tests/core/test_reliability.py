@@ -15,6 +15,7 @@ from pwlreg.core.reliability import (
     MIN_TEMPLATE_STD,
     neighbour_outliers,
     uniqueness,
+    unjudged_pairs,
 )
 
 
@@ -96,6 +97,25 @@ def test_neighbour_check_of_some_pairs_judges_them_as_the_whole_check_does():
     assert np.array_equal(some[200:], whole[200:])
     # Outside the wanted pairs only the first pass's outliers are reported.
     assert some[:200].sum() <= whole[:200].sum()
+
+
+def test_a_pair_far_from_the_others_that_none_moves_like_stands_alone():
+    rng = np.random.default_rng(2)
+    ref = rng.uniform(0, 200, (150, 2))  # spacing about 10 px: the fits reach 40 px or so
+    mov = ref + [3.0, 0.0] + rng.normal(0, 0.3, ref.shape)
+    # In a gap 300 px away: a lone pair, and three that move alike (a surface of their own).
+    gap_ref = np.array([[500.0, 500.0], [540.0, 100.0], [548.0, 104.0], [544.0, 96.0]])
+    gap_mov = gap_ref + [[40.0, 0.0], [25.0, 0.0], [25.5, 0.2], [24.6, -0.1]]
+    ref, mov = np.concatenate([ref, gap_ref]), np.concatenate([mov, gap_mov])
+    wanted = np.zeros(len(ref), bool)
+    wanted[[0, 150, 151]] = True
+    alone = unjudged_pairs(ref, mov, wanted=wanted)
+    assert alone[150]  # nothing near, nothing moving like it
+    assert not alone[151]  # two neighbours move like it
+    assert not alone[0]  # among the others: the neighbour check judges it
+    assert not alone[~wanted].any()  # only the wanted pairs are reported
+    # Neither the neighbour check can judge: it leaves both in.
+    assert not neighbour_outliers(ref, mov)[150:].any()
 
 
 def test_automatic_matching_refuses_a_checkerboard_seen_off_by_a_period():
