@@ -12,7 +12,8 @@ independent checks follow every automatic matcher here.
   correlation **disagree** when the best peak is not where the matcher put the point.
 * :func:`neighbour_outliers` predicts each pair from an affine map fitted to its nearest
   neighbours; a pair that its neighbourhood contradicts by much more than the neighbourhood
-  contradicts itself is dropped.
+  contradicts itself is dropped; :func:`unjudged_pairs` names the pairs it cannot judge
+  (too few neighbours near them, none moving alike), whose own evidence must then be stronger.
 
 Conventions: 8-bit grey images; point arrays ``(N, 2)`` float64 pixels, x right, y down, (0, 0)
 the centre of the top-left pixel.
