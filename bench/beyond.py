@@ -26,6 +26,7 @@ from bench.metrics import (
     endpoint_error,
     endpoint_error_map,
     error_by_triangle,
+    truth_at,
 )
 from bench.quality import Case, CaseData, build_cases
 from pwlreg.core.errors import InputError
@@ -70,21 +71,18 @@ def wrong_inserted(
     truth_x: np.ndarray,
     truth_y: np.ndarray,
 ) -> tuple[int, int]:
-    """How many of the ``inserted`` pairs lie more than :data:`WRONG_PX` from their truth (the
-    truth maps sampled bilinearly at the reference point), of those whose truth is known.
+    """How many of the ``inserted`` pairs lie more than :data:`WRONG_PX` from their truth
+    (:func:`bench.metrics.truth_at`), of those whose truth is known.
 
     A scene worse than Delaunay is worse either through such pairs or through right ones that
     change how the triangles beside a surface without vertices interpolate: the count says
     which.
     """
-    pts = np.asarray(reference, np.float32)[np.asarray(inserted, bool)]
-    if not len(pts):
+    inserted = np.asarray(inserted, bool)
+    if not inserted.any():
         return 0, 0
-    truth = np.column_stack([
-        cv2.remap(np.asarray(m, np.float32), pts[:, 0], pts[:, 1], cv2.INTER_LINEAR,
-                  borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan).ravel()
-        for m in (truth_x, truth_y)])
-    err = np.hypot(*(np.asarray(moving, np.float64)[np.asarray(inserted, bool)] - truth).T)
+    truth = truth_at(truth_x, truth_y, np.asarray(reference)[inserted])
+    err = np.hypot(*(np.asarray(moving, np.float64)[inserted] - truth).T)
     known = np.isfinite(err)
     return int(np.count_nonzero(err[known] > WRONG_PX)), int(np.count_nonzero(known))
 

@@ -102,6 +102,32 @@ def endpoint_error_map(
     return err
 
 
+def truth_at(
+    truth_x: np.ndarray, truth_y: np.ndarray, points: np.ndarray, *, reach: int = 2
+) -> np.ndarray:
+    """True moving positions ``(N, 2)`` of reference ``points``: bilinear in the truth maps,
+    else (a point on a silhouette, whose neighbouring pixel centres see the background) the
+    value of the nearest pixel within ``reach`` pixels that sees the scene; NaN if none does."""
+    p = np.asarray(points, np.float32).reshape(-1, 2)
+    out = np.column_stack([
+        cv2.remap(np.asarray(m, np.float32), p[:, 0], p[:, 1], cv2.INTER_LINEAR,
+                  borderMode=cv2.BORDER_REPLICATE).ravel()
+        for m in (truth_x, truth_y)
+    ]).astype(np.float64)
+    h, w = truth_x.shape
+    for i in np.flatnonzero(~np.all(np.isfinite(out), axis=1)):
+        x, y = p[i]
+        best = np.inf
+        for iy in range(int(np.floor(y)) - reach, int(np.ceil(y)) + reach + 1):
+            for ix in range(int(np.floor(x)) - reach, int(np.ceil(x)) + reach + 1):
+                if 0 <= ix < w and 0 <= iy < h and np.isfinite(truth_x[iy, ix]):
+                    d = (ix - x) ** 2 + (iy - y) ** 2
+                    if d < best:
+                        best = d
+                        out[i] = truth_x[iy, ix], truth_y[iy, ix]
+    return out
+
+
 def error_summary(errors: np.ndarray) -> dict[str, float]:
     """Mean, median, 90th percentile, maximum and RMS of the finite entries of ``errors``.
 

@@ -23,16 +23,14 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
-from scipy.ndimage import map_coordinates
 
 from bench import trust
+from bench.metrics import truth_at
 from pwlreg.core import refine
 from pwlreg.core.epipolar import EpipolarModel
 from pwlreg.core.errors import InputError
 from pwlreg.core.pipeline import register
-from pwlreg.core.refine import (
-    Levels,
-)
+from pwlreg.core.refine import Levels
 
 Call = tuple[Levels, np.ndarray, np.ndarray, np.ndarray, EpipolarModel | None]
 
@@ -61,11 +59,7 @@ def recorded(seeds: tuple[int, ...]) -> list[tuple[Call, np.ndarray]]:
         finally:
             refine.sharpened = product
         for call in seen:
-            ref = call[1]
-            truth = np.column_stack([
-                map_coordinates(t, [ref[:, 1], ref[:, 0]], order=1, cval=np.nan)
-                for t in (scene.truth_x, scene.truth_y)])
-            calls.append((call, truth))
+            calls.append((call, truth_at(scene.truth_x, scene.truth_y, call[1])))
     return calls
 
 

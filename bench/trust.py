@@ -42,8 +42,8 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from bench import middlebury, realdata
-from bench.metrics import endpoint_error, epipolar_line_error
-from bench.scenes import Scene, make_scene, make_unrelated_pair
+from bench.metrics import endpoint_error, epipolar_line_error, truth_at
+from bench.scenes import make_scene, make_unrelated_pair
 from pwlreg.core.errors import RegistrationError
 from pwlreg.core.extent import local_affine_extrapolation
 from pwlreg.core.matching import find_conjugate_points
@@ -116,30 +116,6 @@ def build_cases(quick: bool = False, seeds: tuple[int, ...] | None = None) -> li
     return cases
 
 
-def _truth_at(scene: Scene, points: np.ndarray, reach: int = 2) -> np.ndarray:
-    """True moving positions of reference points: bilinear in the truth maps, else (a point on
-    a silhouette, whose neighbouring pixel centres see the background) the value of the
-    nearest pixel within ``reach`` pixels that sees the scene; NaN if none does."""
-    p = points.astype(np.float32)
-    out = np.column_stack([
-        cv2.remap(m.astype(np.float32), p[:, 0], p[:, 1], cv2.INTER_LINEAR,
-                  borderMode=cv2.BORDER_REPLICATE).ravel()
-        for m in (scene.truth_x, scene.truth_y)
-    ]).astype(np.float64)
-    h, w = scene.shape
-    for i in np.flatnonzero(~np.all(np.isfinite(out), axis=1)):
-        x, y = points[i]
-        best = np.inf
-        for iy in range(int(np.floor(y)) - reach, int(np.ceil(y)) + reach + 1):
-            for ix in range(int(np.floor(x)) - reach, int(np.ceil(x)) + reach + 1):
-                if 0 <= ix < w and 0 <= iy < h and np.isfinite(scene.truth_x[iy, ix]):
-                    d = (ix - x) ** 2 + (iy - y) ** 2
-                    if d < best:
-                        best = d
-                        out[i] = scene.truth_x[iy, ix], scene.truth_y[iy, ix]
-    return out
-
-
 def _error(moving: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """Distance of each pair's moving point to its truth; infinite where the truth is unknown
     (such a pair counts as wrong)."""
@@ -180,14 +156,14 @@ def run_case(case: Case) -> dict:
         # Per vertex move: vertices moved, of which wrong before, wrong after (a vertex of
         # unknown truth, such as an occluded border vertex, counts as wrong both times).
         c = r.corrections
-        t = _truth_at(scene, r.reference_vertices[c.vertices])
+        t = truth_at(scene.truth_x, scene.truth_y, r.reference_vertices[c.vertices])
         wrong_before, wrong_after = (_error(p, t) > WRONG_PX for p in (c.before, c.moving))
         moves = np.array(c.moves)
         row["corrected"] = {str(m): [int(np.count_nonzero(moves == m)),
                                      int(np.count_nonzero(wrong_before[moves == m])),
                                      int(np.count_nonzero(wrong_after[moves == m]))]
                             for m in dict.fromkeys(c.moves)}
-    err = _error(mov_pts, _truth_at(scene, ref_pts))
+    err = _error(mov_pts, truth_at(scene.truth_x, scene.truth_y, ref_pts))
     row["inserted"] = int(r.inserted.sum())
     row["inserted_wrong"] = int(np.count_nonzero(err[len(r.points.reference):] > WRONG_PX))
     sources = np.array(["matched"] * len(r.points.reference)

@@ -20,6 +20,7 @@ from bench.metrics import (
     global_mi,
     mesh_correctness,
     mesh_edges,
+    truth_at,
 )
 from bench.scenes import make_scene
 from pwlreg.core.warp import piecewise_map
@@ -355,3 +356,16 @@ def test_epipolar_line_error_is_the_distance_of_the_true_match_to_its_line():
     np.testing.assert_allclose(np.sort(err), np.r_[np.zeros(9 * 25), np.full(10 * 25, 2.5)],
                                atol=1e-12)
     assert len(epipolar_line_error(F, truth_x, truth_y, valid, step=4)) == 4 * 7
+
+
+def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_scene():
+    s = make_scene("plane", 0, size=(160, 120), supersample=1, n_interior=5)
+    seen = np.isfinite(s.truth_x)
+    edge = np.argwhere(seen[:, :-1] & ~seen[:, 1:])  # seen pixel, background to its right
+    y, x = edge[len(edge) // 2]
+    pts = np.array([[x + 0.4, y]], dtype=float)  # between the two: bilinear truth is NaN
+    truth = truth_at(s.truth_x, s.truth_y, pts)
+    assert np.allclose(truth[0], [s.truth_x[y, x], s.truth_y[y, x]])
+    far = np.argwhere(~seen)[0]  # a background pixel: no truth if none is within reach
+    if not seen[max(far[0] - 3, 0):far[0] + 4, max(far[1] - 3, 0):far[1] + 4].any():
+        assert not np.isfinite(truth_at(s.truth_x, s.truth_y, far[None, ::-1].astype(float))).any()

@@ -1,29 +1,15 @@
 """The trust report's scoring (bench.trust) on small scenes."""
 
-import numpy as np
 
 from bench import trust
-from bench.scenes import make_scene, make_unrelated_pair
-from bench.trust import Case, _truth_at, run_case, summarize
+from bench.scenes import make_unrelated_pair
+from bench.trust import Case, run_case, summarize
 
 
 def test_an_unrelated_pair_is_refused_or_unreliable():
     row = run_case(Case("u", "unrelated",
                         lambda: make_unrelated_pair(0, size=(200, 150), supersample=1)))
     assert row["verdict"] in ("refused", "unreliable")
-
-
-def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_scene():
-    s = make_scene("plane", 0, size=(160, 120), supersample=1, n_interior=5)
-    seen = np.isfinite(s.truth_x)
-    edge = np.argwhere(seen[:, :-1] & ~seen[:, 1:])  # seen pixel, background to its right
-    y, x = edge[len(edge) // 2]
-    pts = np.array([[x + 0.4, y]], dtype=float)  # between the two: bilinear truth is NaN
-    truth = _truth_at(s, pts)
-    assert np.allclose(truth[0], [s.truth_x[y, x], s.truth_y[y, x]])
-    far = np.argwhere(~seen)[0]  # a background pixel: no truth if none is within reach
-    if not seen[max(far[0] - 3, 0):far[0] + 4, max(far[1] - 3, 0):far[1] + 4].any():
-        assert not np.isfinite(_truth_at(s, far[None, ::-1].astype(float))).any()
 
 
 def test_summary_counts_wrong_pairs_by_source_verdict_moves_epipolar_and_mostly_wrong_good():
