@@ -1,7 +1,9 @@
 """Vertex moves after the swaps: a measured vertex that the images contradict moves with a
 neighbour (:func:`contradicted_vertices`, the move ``correct``); an extrapolated border vertex
-is searched for along its epipolar line (:func:`border_search`, the move ``border``). Both
-score a vertex by its star and accept a candidate by the same rule.
+is searched for along its epipolar line (:func:`border_search`, the move ``border``); after
+the alignment (:func:`aligned_vertices`, ``align``), a vertex whose star the images score
+higher without it leaves the mesh (:func:`removed_vertices`, ``remove``). They score a vertex
+by its star and accept a candidate by the same rule.
 
 A corner where a foreground edge crosses the background (a T-junction) looks the same in both
 images but belongs to neither surface: the matcher pairs it with the foreground's motion while
@@ -70,6 +72,7 @@ BORDER_PASSES = 2
 MOVE = "correct"
 BORDER_MOVE = "border"
 ALIGN_MOVE = "align"
+REMOVE_MOVE = "remove"
 
 #: Candidate displacements are taken once per cell of this side (px): neighbours moving
 #: alike propose one candidate, not several.
@@ -302,6 +305,131 @@ def aligned_vertices(
     kept = moved[(after[moved] != before[moved]).any(axis=1)]
     return Corrections(kept, after[kept], before[kept], gain[np.searchsorted(moved, kept)],
                        len(moved), (ALIGN_MOVE,) * len(kept))
+
+
+def removed_vertices(
+    images: ScoringImages,
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    removable: np.ndarray,
+    *,
+    epsilon: float,
+    epsilon_pixels: float,
+    cost: str = "mi",
+    scale: float = 1.0,
+) -> tuple[Corrections, np.ndarray]:
+    """The ``removable`` inner vertices whose star the images score higher without them (the
+    move ``remove``), and the triangles without them.
+
+    A vertex that belongs to no surface (a T-junction, a lookalike) contradicts the images
+    wherever it goes; when none of its neighbours' motions suits it the other moves leave it.
+    Each inner vertex's star (a polygon around it) is scored as it is and triangulated without
+    the vertex by each fan from one of the polygon's corners that folds in neither image; when
+    the best of these raises the star's consistency (the swaps' cost) by more than
+    :data:`GAIN_FACTOR` times the swaps' threshold for its pixels, the vertex leaves the mesh
+    (it stays in the vertex list, in no triangle) and the fan takes its place; no two
+    neighbours in one pass. The star's pixels stay the same, so the mesh's extent does not
+    change.
+
+    Parameters
+    ----------
+    images : ScoringImages
+        The scoring images, reduced by ``scale`` (:func:`core.similarity.reduced`).
+    reference_vertices, moving_vertices : ndarray, shape (N, 2)
+        The mesh's vertices in both images (pixels of the full images).
+    triangles : ndarray of int, shape (T, 3)
+        The mesh's triangles, positively oriented in the reference.
+    removable : ndarray of bool, shape (N,)
+        Vertices that may leave (measured, not given by the client); on the mesh's boundary
+        none does.
+    epsilon, epsilon_pixels : float
+        The swaps' gain threshold (:func:`core.optimize.gain_thresholds`).
+    cost : str, optional
+        The swaps' consistency measure, an entry of :data:`core.optimize.COSTS`.
+    scale : float, optional
+        Scale of ``images`` against the pixels of the vertices.
+
+    Returns
+    -------
+    removed : Corrections
+        In vertex order, each with the gain of its star (its position stays: ``moving`` is
+        ``before``).
+    triangles : ndarray of int, shape (T', 3)
+        The mesh's triangles without the removed vertices' stars, with their fans.
+    """
+    ref_v, mov_v = to_level(reference_vertices, scale), to_level(moving_vertices, scale)
+    tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    n = len(ref_v)
+    none = Corrections.none(), tris
+    if not len(tris):
+        return none
+    _, b, around, _ = _neighbours(ref_v, tris)
+    star, start = _stars(tris, n)
+    degree = np.diff(start)
+    # Inner: as many triangles as neighbours (a closed fan).
+    cand = np.flatnonzero(np.asarray(removable, bool) & (degree >= 3)
+                          & (degree == np.diff(around)))
+    if not len(cand):
+        return none
+    # The polygon around each: in a positive triangle (v, a, b) the polygon runs a -> b.
+    corner = tris.ravel()
+    after = tris[:, [1, 2, 0]].ravel()
+    then = tris[:, [2, 0, 1]].ravel()
+    keys = corner * n + after
+    order = np.argsort(keys)
+    keys, then = keys[order], then[order]
+    k = degree[cand]
+    poly = np.zeros((len(cand), k.max()), np.int64)
+    poly[:, 0] = after[order][np.searchsorted(keys, cand * n)]
+    for j in range(1, k.max()):
+        at = np.minimum(np.searchsorted(keys, cand * n + poly[:, j - 1]), len(keys) - 1)
+        poly[:, j] = np.where(j < k, then[at], 0)
+    measure = COSTS[cost]
+    fan_tris, fan_of, fan_apex = [], [], []
+    for size in np.unique(k):
+        rows = np.flatnonzero(k == size)
+        apex, step = np.divmod(np.arange(size * (size - 2)), size - 2)
+        pattern = np.column_stack([apex, (apex + step + 1) % size, (apex + step + 2) % size])
+        fan_tris.append(poly[rows][:, pattern].reshape(-1, 3))
+        fan_of.append(np.repeat(rows, size * (size - 2)))
+        fan_apex.append(np.tile(apex, len(rows)))
+    fan_tris, fan_of, fan_apex = (np.concatenate(a) for a in (fan_tris, fan_of, fan_apex))
+    fan_id = fan_of * k.max() + fan_apex
+    ref_t, mov_t = ref_v[fan_tris], mov_v[fan_tris]
+    folds = ((orientation(*ref_t.transpose(1, 0, 2)) <= 0)
+             | (orientation(*mov_t.transpose(1, 0, 2)) <= 0))
+    fans, fan = np.unique(fan_id, return_inverse=True)
+    valid = np.bincount(fan, weights=folds, minlength=len(fans)) == 0
+    if not valid.any():
+        return none
+    # Each star as it is (its triangles' histograms once), then each of its fans that folds
+    # nowhere.
+    owner, at = _ragged(start[cand], degree[cand])
+    now, at = np.unique(star[at], return_inverse=True)
+    hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
+                                        with_moments=measure.needs_moments)
+    hist_now = _group_sums(hist[at], owner, len(cand))
+    base = measure.measure(hist_now, None if moments is None else _group_sums(
+        moments[at], owner, len(cand)), images.bins)
+    kept = valid[fan]
+    fans, group = np.unique(fan_id[kept], return_inverse=True)
+    hist, moments = triangle_statistics(images, ref_t[kept], mov_t[kept],
+                                        with_moments=measure.needs_moments)
+    value = measure.measure(_group_sums(hist, group, len(fans)), None if moments is None
+                            else _group_sums(moments, group, len(fans)), images.bins)
+    which = fans // k.max()
+    gain = value - base[which]
+    threshold = GAIN_FACTOR * gain_thresholds(hist_now.sum(axis=1).astype(np.float64),
+                                              epsilon, epsilon_pixels)
+    chosen = _best(which, gain) & (gain > threshold[which])
+    keep = _independent(cand[which[chosen]], gain[chosen], (b, around), n)
+    verts, gains, best = cand[which[chosen]][keep], gain[chosen][keep], fans[chosen][keep]
+    drop = np.zeros(len(tris), bool)
+    drop[star[_ragged(start[verts], degree[verts])[1]]] = True
+    out = np.concatenate([tris[~drop], fan_tris[np.isin(fan_id, best)]])
+    at = np.asarray(moving_vertices, dtype=np.float64)[verts]
+    return Corrections(verts, at, at.copy(), gains, len(cand), (REMOVE_MOVE,) * len(verts)), out
 
 
 def _star_gains(

@@ -75,8 +75,11 @@ class RegistrationOptions(BaseModel):
         "move). Last, every vertex but the client's moves together, by at most 2 px, so that "
         "the images agree through the mesh over all its pixels (a direct photometric "
         "alignment), kept where its triangles' consistency does not fall (the 'align' move); "
-        "then the optimizer runs once more over the moved mesh. On this path the swaps look at "
-        "the images reduced to at most 640 px a side, as the verdict does. "
+        "a measured inner vertex whose triangles, filled again without it, gain as much as a "
+        "'correct' move must leaves the mesh (the 'remove' move: a vertex on no surface, such "
+        "as a T-junction); then the optimizer runs once more over the moved mesh. On this "
+        "path the swaps look at the images reduced to at most 640 px a side, as the verdict "
+        "does. "
         "'automatic': only when the service found the points; 'always': also refine client "
         "points (which are kept, never moved); 'never': the paper's mesh over the points "
         "alone.",

@@ -16,10 +16,12 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from pwlreg.core.align import align_vertices
 from pwlreg.core.correct import (
+    REMOVE_MOVE,
     Corrections,
     aligned_vertices,
     border_search,
     contradicted_vertices,
+    removed_vertices,
 )
 from pwlreg.core.errors import InputError, UnreliableResultError
 from pwlreg.core.extent import extrapolations, frame_vertices
@@ -101,8 +103,10 @@ class RegistrationResult:
     insertion : dict of str to int or None
         The counts of the insertion step (None when it did not run).
     corrections : Corrections or None
-        The vertices the vertex moves of :data:`core.moves.MOVES` (``correct``, ``border``)
-        moved after the swaps (None when they did not run: on the path with insertion only).
+        The vertices the vertex moves of :data:`core.moves.MOVES` (``correct``, ``border``,
+        ``align``) moved after the swaps, and those ``remove`` took out of the final mesh (they
+        stay in the vertex lists, which the initial mesh shares, in no final triangle); None
+        when they did not run (they run on the path with insertion only).
     """
 
     reference_vertices: np.ndarray
@@ -136,12 +140,16 @@ class RegistrationResult:
         """One line: points, triangles, swaps, global MI before and after, time."""
         s = self.search
         # A vertex moved by two moves (``correct`` then ``align``) is one vertex moved.
-        moved = 0 if self.corrections is None else len(np.unique(self.corrections.vertices))
+        c = self.corrections
+        records = [] if c is None else list(zip(c.vertices.tolist(), c.moves, strict=True))
+        gone = sum(m == REMOVE_MOVE for _, m in records)
+        moved = len({v for v, m in records if m != REMOVE_MOVE})
         return (
             f"{len(self.reference_vertices)} points ({self.points.source}), "
             f"{len(self.final_triangles)} triangles, {len(s.steps)} swaps "
             f"[{self.options.optimizer}/{self.options.cost}], "
             + (f"{moved} vertices moved, " if moved else "")
+            + (f"{gone} removed, " if gone else "")
             + f"MI {s.initial_mi:.4f} -> {s.final_mi:.4f} bits, "
             f"NMI {s.initial_nmi:.4f} -> {s.final_nmi:.4f}, "
             f"{self.timings['total_s']:.2f} s, quality {self.quality.verdict}"
@@ -396,10 +404,15 @@ def register(
                            mesh.reference, moving_v, mesh.triangles, ~given, scale=scale),
             mesh.triangles, cost=opts.cost, scale=scale)
         moving_v[aligned.vertices] = aligned.moving
-        corrections = corrections + aligned
+        # After the moves: a vertex none of them could place leaves the mesh.
+        removed, triangles = removed_vertices(
+            swaps_level, mesh.reference, moving_v, mesh.triangles,
+            ~tri_report.extrapolated & ~given, epsilon=opts.epsilon,
+            epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
+        corrections = corrections + aligned + removed
         if len(corrections.vertices):
             # The search after the moves scores the whole moved mesh: its final MI is theirs.
-            mesh, search = optimize_again(search, Mesh(mesh.reference, moving_v, mesh.triangles),
+            mesh, search = optimize_again(search, Mesh(mesh.reference, moving_v, triangles),
                                           swaps_level, scale, opts,
                                           elapsed=time.perf_counter() - t)
     timings["optimization_s"] = time.perf_counter() - t

@@ -14,14 +14,17 @@ from pwlreg.core.correct import (
     ALIGN_MOVE,
     BORDER_MOVE,
     MOVE,
+    REMOVE_MOVE,
     Corrections,
     border_search,
     contradicted_vertices,
+    removed_vertices,
 )
 from pwlreg.core.io import convergence_document, mesh_document
 from pwlreg.core.moves import MOVES
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import register
+from pwlreg.core.raster import orientation, triangle_areas
 from pwlreg.core.similarity import prepare_images, reduced
 from tests.core.synthetic import book_map, open_book, texture
 
@@ -146,6 +149,67 @@ def test_a_move_that_would_fold_a_triangle_is_not_made() -> None:
     # ... with it 8 px away that place lies beyond it: two triangles would fold.
     near = star(108.0)
     assert near.tested == 1 and len(near.vertices) == 0
+
+
+def _remove(images, ref_v, mov_v, tris, removable=None):  # type: ignore[no-untyped-def]
+    removable = np.ones(len(ref_v), bool) if removable is None else removable
+    return removed_vertices(images, ref_v, mov_v, tris, removable, epsilon=DEFAULTS.epsilon,
+                            epsilon_pixels=DEFAULTS.epsilon_pixels)
+
+
+def _positive(ref_v: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """The triangles, each positively oriented in the reference (as a Mesh holds them)."""
+    tris = tris.copy()
+    back = orientation(*ref_v[tris].transpose(1, 0, 2)) < 0
+    tris[back] = tris[back][:, [0, 2, 1]]
+    return tris
+
+
+def test_a_right_mesh_loses_no_vertex() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    tris = _positive(ref_v, tris)
+    found, out = _remove(images, ref_v, mov_v, tris)
+    # Scored: the inner vertices (18 of 40).
+    assert found.tested == 18 and len(found.vertices) == 0
+    np.testing.assert_array_equal(out, tris)
+
+
+def test_a_vertex_off_its_surface_leaves_the_mesh_its_star_refilled() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    tris = _positive(ref_v, tris)
+    wrong = int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == 80))[0])
+    off = mov_v.copy()
+    off[wrong] += [5.0, -2.0]
+    found, out = _remove(images, ref_v, off, tris)
+    assert found.vertices.tolist() == [wrong] and found.moves == (REMOVE_MOVE,)
+    assert found.gains[0] > 0
+    record = found.to_list()[0]
+    assert record["move"] == REMOVE_MOVE and record["to"] == record["from"] == off[wrong].tolist()
+    # The star's polygon filled again without it: the same reference area, the triangles
+    # away from it untouched, no fold in either image.
+    assert not (out == wrong).any()
+    star = (tris == wrong).any(axis=1)
+    assert len(out) == len(tris) - 2
+    assert {tuple(t) for t in tris[~star].tolist()} <= {tuple(t) for t in out.tolist()}
+    np.testing.assert_allclose(triangle_areas(ref_v[out]).sum(),
+                               triangle_areas(ref_v[tris]).sum())
+    assert (orientation(*ref_v[out].transpose(1, 0, 2)) > 0).all()
+    assert (orientation(*off[out].transpose(1, 0, 2)) > 0).all()
+    # A vertex that may not leave (the client's) stays.
+    fixed = np.ones(len(ref_v), bool)
+    fixed[wrong] = False
+    assert wrong not in _remove(images, ref_v, off, tris, fixed)[0].vertices.tolist()
+
+
+def test_a_vertex_on_the_mesh_boundary_never_leaves() -> None:
+    images, ref_v, mov_v, tris = _book_mesh()
+    tris = _positive(ref_v, tris)
+    side = int(np.flatnonzero((ref_v[:, 0] == 10) & (ref_v[:, 1] == 80))[0])
+    off = mov_v.copy()
+    off[side] += [5.0, -2.0]
+    found, out = _remove(images, ref_v, off, tris)
+    assert side not in found.vertices.tolist()
+    assert (out == side).any()
 
 
 def _border_star(shift: float, extrapolations: list[float]):  # type: ignore[no-untyped-def]
@@ -278,7 +342,13 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
     assert moved is not None
     moves = np.array(moved.moves)
     correct, border, align = moves == MOVE, moves == BORDER_MOVE, moves == ALIGN_MOVE
-    assert correct.any() and border.any() and align.any() and (correct | border | align).all()
+    remove = moves == REMOVE_MOVE
+    assert correct.any() and border.any() and align.any()
+    assert (correct | border | align | remove).all()
+    # A removed vertex is in the initial mesh, in no final triangle, where it was.
+    assert np.isin(moved.vertices[remove], result.initial_triangles).all()
+    assert not np.isin(moved.vertices[remove], result.final_triangles).any()
+    np.testing.assert_array_equal(moved.moving[remove], moved.before[remove])
     assert not result.extrapolated[moved.vertices[correct]].any()
     assert result.extrapolated[moved.vertices[border]].all()
     # The alignment comes last: a vertex's last record ends where the vertex is.
@@ -307,11 +377,15 @@ def test_teddys_moved_vertices_lower_its_error_and_are_recorded() -> None:
         v = record["vertex"]
         if final:
             np.testing.assert_allclose(record["to"], mesh["moving_vertices"][v], atol=0.01)
-        assert record["move"] in (MOVE, BORDER_MOVE, ALIGN_MOVE)
+        assert record["move"] in (MOVE, BORDER_MOVE, ALIGN_MOVE, REMOVE_MOVE)
         assert record["gain"] > 0 if record["move"] != ALIGN_MOVE else record["gain"] >= 0
     counts = {m["move"]: m for m in mesh["moves"]}
-    for name, which in ((MOVE, correct), (BORDER_MOVE, border), (ALIGN_MOVE, align)):
+    for name, which in ((MOVE, correct), (BORDER_MOVE, border), (ALIGN_MOVE, align),
+                        (REMOVE_MOVE, remove)):
+        if name not in counts:
+            assert not which.any()
+            continue
         assert counts[name]["count"] == int(which.sum())
         assert counts[name]["kind"] == "vertex"
         assert counts[name]["reason"] == MOVES[name].reason
-    assert f"{len(np.unique(moved.vertices))} vertices moved" in result.summary()
+    assert f"{len(np.unique(moved.vertices[~remove]))} vertices moved" in result.summary()
