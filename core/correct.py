@@ -372,29 +372,9 @@ def removed_vertices(
                           & (degree == np.diff(around)))
     if not len(cand):
         return none
-    # The polygon around each: in a positive triangle (v, a, b) the polygon runs a -> b.
-    corner = tris.ravel()
-    after = tris[:, [1, 2, 0]].ravel()
-    then = tris[:, [2, 0, 1]].ravel()
-    keys = corner * n + after
-    order = np.argsort(keys)
-    keys, then = keys[order], then[order]
     k = degree[cand]
-    poly = np.zeros((len(cand), k.max()), np.int64)
-    poly[:, 0] = after[order][np.searchsorted(keys, cand * n)]
-    for j in range(1, k.max()):
-        at = np.minimum(np.searchsorted(keys, cand * n + poly[:, j - 1]), len(keys) - 1)
-        poly[:, j] = np.where(j < k, then[at], 0)
     measure = COSTS[cost]
-    fan_tris, fan_of, fan_apex = [], [], []
-    for size in np.unique(k):
-        rows = np.flatnonzero(k == size)
-        apex, step = np.divmod(np.arange(size * (size - 2)), size - 2)
-        pattern = np.column_stack([apex, (apex + step + 1) % size, (apex + step + 2) % size])
-        fan_tris.append(poly[rows][:, pattern].reshape(-1, 3))
-        fan_of.append(np.repeat(rows, size * (size - 2)))
-        fan_apex.append(np.tile(apex, len(rows)))
-    fan_tris, fan_of, fan_apex = (np.concatenate(a) for a in (fan_tris, fan_of, fan_apex))
+    fan_tris, fan_of, fan_apex = _fans(_polygons(tris, cand, k, n), k)
     fan_id = fan_of * k.max() + fan_apex
     ref_t, mov_t = ref_v[fan_tris], mov_v[fan_tris]
     folds = ((orientation(*ref_t.transpose(1, 0, 2)) <= 0)
@@ -405,7 +385,7 @@ def removed_vertices(
         return none
     # Each star as it is (its triangles' histograms once), then each of its fans that folds
     # nowhere.
-    owner, at = _ragged(start[cand], degree[cand])
+    owner, at = _ragged(start[cand], k)
     now, at = np.unique(star[at], return_inverse=True)
     hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
                                         with_moments=measure.needs_moments)
@@ -430,6 +410,34 @@ def removed_vertices(
     out = np.concatenate([tris[~drop], fan_tris[np.isin(fan_id, best)]])
     at = np.asarray(moving_vertices, dtype=np.float64)[verts]
     return Corrections(verts, at, at.copy(), gains, len(cand), (REMOVE_MOVE,) * len(verts)), out
+
+
+def _polygons(tris: np.ndarray, inner: np.ndarray, degree: np.ndarray, n: int) -> np.ndarray:
+    """The polygon around each ``inner`` vertex (its neighbours in order, ``degree[i]`` of
+    them, the rest of its row 0): in a positive triangle ``(v, a, b)`` it runs ``a -> b``."""
+    keys = tris.ravel() * n + tris[:, [1, 2, 0]].ravel()
+    order = np.argsort(keys)
+    keys, then = keys[order], tris[:, [2, 0, 1]].ravel()[order]
+    poly = np.zeros((len(inner), degree.max()), np.int64)
+    poly[:, 0] = tris[:, [1, 2, 0]].ravel()[order][np.searchsorted(keys, inner * n)]
+    for j in range(1, degree.max()):
+        at = np.minimum(np.searchsorted(keys, inner * n + poly[:, j - 1]), len(keys) - 1)
+        poly[:, j] = np.where(j < degree, then[at], 0)
+    return poly
+
+
+def _fans(poly: np.ndarray, degree: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every fan triangulation of each polygon (``degree[i]`` corners of row ``i``), one per
+    corner (its apex): the triangles ``(T, 3)``, each one's polygon and apex."""
+    tris, owner, apexes = [], [], []
+    for size in np.unique(degree):
+        rows = np.flatnonzero(degree == size)
+        apex, step = np.divmod(np.arange(size * (size - 2)), size - 2)
+        pattern = np.column_stack([apex, (apex + step + 1) % size, (apex + step + 2) % size])
+        tris.append(poly[rows][:, pattern].reshape(-1, 3))
+        owner.append(np.repeat(rows, size * (size - 2)))
+        apexes.append(np.tile(apex, len(rows)))
+    return tuple(np.concatenate(a) for a in (tris, owner, apexes))  # type: ignore[return-value]
 
 
 def _star_gains(

@@ -8,9 +8,8 @@ step by step with their gain. *Vertex* moves change a vertex's moving position a
 swaps, on the same path as the insertions (:mod:`core.correct`): a measured vertex the images
 contradict, an extrapolated border vertex searched for along its epipolar line, every vertex
 aligned, a vertex that none of these placed taken out; each recorded with its gain; the swaps
-then run once more. Every move's name and
-reason go into ``mesh.json`` and ``convergence.json``, and every mesh vertex says which move
-(or the matcher) put it there.
+then run once more. Every move's name and reason go into ``mesh.json`` and
+``convergence.json``, and every mesh vertex says which move (or the matcher) put it there.
 Adding an insertion source is one entry here.
 """
 
@@ -206,9 +205,9 @@ MOVES: dict[str, Move] = {
     REMOVE_MOVE: Move(
         "vertex",
         "a measured inner vertex (not the client's) taken out of the mesh after the other "
-        "vertex moves, its star triangulated again by the fan from one of its corners that "
-        "folds in neither image, when that raised the consistency (the swaps' cost) of the "
-        "star by more than the correct move must; no two neighbours in one pass (a vertex "
+        "vertex moves, its star triangulated again by the best of the fans from its corners "
+        "that fold in neither image, when that raised the consistency (the swaps' cost) of "
+        "the star by more than the correct move must; no two neighbours in one pass (a vertex "
         "that belongs to no surface, such as a corner where a foreground edge crosses the "
         "background, contradicts the images wherever it goes); it stays in the vertex list, "
         "which the initial mesh shares, in no final triangle",
