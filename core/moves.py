@@ -207,10 +207,10 @@ MOVES: dict[str, Move] = {
         "a measured inner vertex (not the client's) taken out of the mesh after the other "
         "vertex moves, its star triangulated again by the best of the fans from its corners "
         "that fold in neither image, when that raised the consistency (the swaps' cost) of "
-        "the star by more than the correct move must; no two neighbours in one pass (a vertex "
-        "that belongs to no surface, such as a corner where a foreground edge crosses the "
-        "background, contradicts the images wherever it goes); it stays in the vertex list, "
-        "which the initial mesh shares, in no final triangle",
+        "the star by more than the correct move must; no two neighbours in one pass (a "
+        "T-junction matches no surface wherever it goes; a right vertex whose triangles reach "
+        "over a depth step maps the other surface wrong); it stays in the vertex list, which "
+        "the initial mesh shares, in no final triangle",
     ),
     "swap": Move(
         "swap",
