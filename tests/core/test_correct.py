@@ -151,10 +151,10 @@ def test_a_move_that_would_fold_a_triangle_is_not_made() -> None:
     assert near.tested == 1 and len(near.vertices) == 0
 
 
-def _remove(images, ref_v, mov_v, tris, removable=None):  # type: ignore[no-untyped-def]
+def _remove(images, ref_v, mov_v, tris, removable=None, cost="mi"):  # type: ignore[no-untyped-def]
     removable = np.ones(len(ref_v), bool) if removable is None else removable
     return removed_vertices(images, ref_v, mov_v, tris, removable, epsilon=DEFAULTS.epsilon,
-                            epsilon_pixels=DEFAULTS.epsilon_pixels)
+                            epsilon_pixels=DEFAULTS.epsilon_pixels, cost=cost)
 
 
 def _positive(ref_v: np.ndarray, tris: np.ndarray) -> np.ndarray:
@@ -174,13 +174,14 @@ def test_a_right_mesh_loses_no_vertex() -> None:
     np.testing.assert_array_equal(out, tris)
 
 
-def test_a_vertex_off_its_surface_leaves_the_mesh_its_star_refilled() -> None:
+@pytest.mark.parametrize("cost", ["mi", "ncc"])
+def test_a_vertex_off_its_surface_leaves_the_mesh_its_star_refilled(cost: str) -> None:
     images, ref_v, mov_v, tris = _book_mesh()
     tris = _positive(ref_v, tris)
     wrong = int(np.flatnonzero((ref_v[:, 0] == 35) & (ref_v[:, 1] == 80))[0])
     off = mov_v.copy()
     off[wrong] += [5.0, -2.0]
-    found, out = _remove(images, ref_v, off, tris)
+    found, out = _remove(images, ref_v, off, tris, cost=cost)
     assert found.vertices.tolist() == [wrong] and found.moves == (REMOVE_MOVE,)
     assert found.gains[0] > 0
     record = found.to_list()[0]
@@ -198,7 +199,7 @@ def test_a_vertex_off_its_surface_leaves_the_mesh_its_star_refilled() -> None:
     # A vertex that may not leave (the client's) stays.
     fixed = np.ones(len(ref_v), bool)
     fixed[wrong] = False
-    assert wrong not in _remove(images, ref_v, off, tris, fixed)[0].vertices.tolist()
+    assert wrong not in _remove(images, ref_v, off, tris, fixed, cost)[0].vertices.tolist()
 
 
 def test_a_vertex_on_the_mesh_boundary_never_leaves() -> None:
