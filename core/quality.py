@@ -28,6 +28,7 @@ which prints the distribution of the true endpoint error per verdict).
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -376,8 +377,13 @@ def assess(
     tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     extra = np.asarray(extrapolated, dtype=bool)
     ref_level, mov_level = to_level(ref, scale), to_level(mov, scale)
-    scores, _, global_peak = peak_scores(images, ref_level[tris], mov_level[tris])
     measured = ~extra[tris].any(axis=1)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # The residual flow does not need the peak test: on a second thread while it runs
+        # (OpenCV lets go of the GIL).
+        residual = pool.submit(residual_share, images, ref_level, mov_level, tris, measured)
+        scores, _, global_peak = peak_scores(images, ref_level[tris], mov_level[tris])
+        residual_figures = residual.result()
     areas = triangle_areas(ref[tris])
     textured = measured & np.isfinite(scores)
     textured_area = float(areas[textured].sum())
@@ -416,8 +422,7 @@ def assess(
         "extrapolated_low_consistency_share": outer_low / outer_area if outer_area else 0.0,
         "textured_share": textured_area / measured_area if measured_area > 0 else 0.0,
     }
-    figures["residual_share"], figures["extrapolated_off_share"] = residual_share(
-        images, ref_level, mov_level, tris, measured)
+    figures["residual_share"], figures["extrapolated_off_share"] = residual_figures
     # Spread thinning is not a rejection: the share counts the pairs the checks let through.
     if "spread" in rejected and candidates:
         figures["inlier_share"] = min(1.0, (kept + rejected["spread"]) / candidates)
