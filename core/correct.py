@@ -395,7 +395,8 @@ def removed_vertices(
     base = measure.measure(hist_now, None if moments is None else _group_sums(
         moments[at], owner, len(cand)), images.bins)
     kept = valid[fan]
-    fans, group = np.unique(fan_id[kept], return_inverse=True)
+    fans = fans[valid]
+    group = np.searchsorted(fans, fan_id[kept])
     hist, moments = triangle_statistics(images, ref_t[kept], mov_t[kept],
                                         with_moments=measure.needs_moments)
     value = measure.measure(_group_sums(hist, group, len(fans)), None if moments is None

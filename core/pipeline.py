@@ -375,12 +375,13 @@ def register(
         swaps_level = level if level.bins == images.bins else reduced(images, SCORING_SIDE)[0]
         mesh, search = optimize_on_level(mesh, swaps_level, scale, opts, optimizing)
         given = np.array(origins) == "client"
+        # Measured and not the client's: the vertices the correct and remove moves may change.
+        own = ~tri_report.extrapolated & ~given
         # After the swaps: on the first mesh, whose diagonals cross the depth steps, right
         # vertices' triangles gained by moving with the other surface (Middlebury's frame
         # worse on three pairs of four, cones 0.991 -> 1.036 px; 0.982 after the swaps).
         corrections = contradicted_vertices(
-            images, mesh.reference, mesh.moving, mesh.triangles,
-            ~tri_report.extrapolated & ~given,
+            images, mesh.reference, mesh.moving, mesh.triangles, own,
             witnesses=~tri_report.extrapolated, epsilon=opts.epsilon,
             epsilon_pixels=opts.epsilon_pixels, cost=opts.cost)
         border = tri_report.extrapolated
@@ -406,8 +407,7 @@ def register(
         moving_v[aligned.vertices] = aligned.moving
         # After the moves: a vertex none of them could place leaves the mesh.
         removed, triangles = removed_vertices(
-            swaps_level, mesh.reference, moving_v, mesh.triangles,
-            ~tri_report.extrapolated & ~given, epsilon=opts.epsilon,
+            swaps_level, mesh.reference, moving_v, mesh.triangles, own, epsilon=opts.epsilon,
             epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
         corrections = corrections + aligned + removed
         if len(corrections.vertices):
