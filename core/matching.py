@@ -337,7 +337,7 @@ def _lk_pair(
     """Track ``points`` from ``a`` to ``b`` and back with pyramidal LK (same-size images).
 
     Returns the tracked points (N, 2), a success mask (both directions converged) and the
-    forward-backward error (N,) in pixels of ``a``.
+    forward-backward error (N,) in pixels of ``a`` (infinite where the forward track failed).
     """
     if len(points) == 0:
         return np.empty((0, 2)), np.zeros(0, bool), np.empty(0)
@@ -345,11 +345,17 @@ def _lk_pair(
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
         a, b, p0, None, winSize=(win, win), maxLevel=levels, criteria=_LK_CRITERIA
     )
-    p2, st2, _ = cv2.calcOpticalFlowPyrLK(
-        b, a, p1, None, winSize=(win, win), maxLevel=levels, criteria=_LK_CRITERIA
-    )
-    ok = (st1.ravel() == 1) & (st2.ravel() == 1)
-    fb = np.linalg.norm((p2 - p0).reshape(-1, 2), axis=1).astype(np.float64)
+    # LK tracks each point on its own: only the forward successes are tracked back (a fifth
+    # to a third of the coarse prior's corners are lost forward).
+    forward = np.flatnonzero(st1.ravel() == 1)
+    ok = np.zeros(len(points), bool)
+    fb = np.full(len(points), np.inf)
+    if len(forward):
+        p2, st2, _ = cv2.calcOpticalFlowPyrLK(
+            b, a, p1[forward], None, winSize=(win, win), maxLevel=levels, criteria=_LK_CRITERIA
+        )
+        ok[forward] = st2.ravel() == 1
+        fb[forward] = np.linalg.norm((p2 - p0[forward]).reshape(-1, 2), axis=1)
     return p1.reshape(-1, 2).astype(np.float64), ok, fb
 
 

@@ -14,9 +14,11 @@ from bench import realdata
 from pwlreg.core.epipolar import MIN_PAIRS
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.matching import (
+    _LK_CRITERIA,
     LISTED_AUTOMATIC,
     LISTED_CLIENT,
     ConjugatePoints,
+    _lk_pair,
     detect_corners,
     find_conjugate_points,
     match_lk,
@@ -216,6 +218,30 @@ def test_detect_corners_sub_pixel_at_full_resolution():
     pts = detect_corners(img, 10, 10.0)
     assert len(pts) >= 1
     assert np.min(np.linalg.norm(pts - 999.5, axis=1)) < 0.3
+
+
+def test_tracking_back_only_the_forward_tracks_changes_no_result():
+    """The forward-backward check tracks back only what LK kept forward: the same tracks and
+    errors as tracking every point back, the points lost forward failed with no error."""
+    ref = texture()
+    mov = np.roll(ref, (2, 3), axis=(0, 1))
+    # The last points leave the image on the way forward.
+    points = np.array([[100.0, 100.0], [240.5, 180.25], [400.0, 300.0], [479.0, 359.0],
+                       [478.5, 10.0]])
+    tracked, ok, fb = _lk_pair(ref, mov, points, 21, 3)
+    p0 = points.astype(np.float32).reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(ref, mov, p0, None, winSize=(21, 21), maxLevel=3,
+                                          criteria=_LK_CRITERIA)
+    p2, st2, _ = cv2.calcOpticalFlowPyrLK(mov, ref, p1, None, winSize=(21, 21), maxLevel=3,
+                                          criteria=_LK_CRITERIA)
+    forward = st1.ravel() == 1
+    assert forward[:3].all() and not forward.all()
+    np.testing.assert_array_equal(tracked, p1.reshape(-1, 2))
+    np.testing.assert_array_equal(ok, forward & (st2.ravel() == 1))
+    np.testing.assert_array_equal(fb[forward], np.linalg.norm((p2 - p0).reshape(-1, 2),
+                                                              axis=1)[forward])
+    assert np.isinf(fb[~forward]).all()
+    np.testing.assert_allclose(tracked[:3], points[:3] + [3.0, 2.0], atol=0.05)
 
 
 def test_sift_reports_ratio_and_mutual_rejections(planar_pair):
