@@ -31,7 +31,7 @@ import numpy as np
 from scipy import sparse
 
 from pwlreg.core.epipolar import epipolar_lines, line_direction, line_foot, on_level
-from pwlreg.core.optimize import COSTS, gain_thresholds
+from pwlreg.core.optimize import COSTS, Cost, gain_thresholds
 from pwlreg.core.raster import orientation
 from pwlreg.core.similarity import ScoringImages, from_level, to_level, triangle_statistics
 
@@ -385,26 +385,15 @@ def removed_vertices(
     valid = np.bincount(fan, weights=folds, minlength=len(fans)) == 0
     if not valid.any():
         return none
-    # Each star as it is (its triangles' histograms once), then each of its fans that folds
-    # nowhere.
-    owner, at = _ragged(start[cand], k)
-    now, at = np.unique(star[at], return_inverse=True)
-    hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
-                                        with_moments=measure.needs_moments)
-    hist_now = _group_sums(hist[at], owner, len(cand))
-    base = measure.measure(hist_now, None if moments is None else _group_sums(
-        moments[at], owner, len(cand)), images.bins)
+    # Each star as it is, then each of its fans that folds nowhere.
+    base, pixels = _star_values(images, ref_v, mov_v, tris, cand, (star, start), measure)
     kept = valid[fan]
     fans = fans[valid]
     group = np.searchsorted(fans, fan_id[kept])
-    hist, moments = triangle_statistics(images, ref_t[kept], mov_t[kept],
-                                        with_moments=measure.needs_moments)
-    value = measure.measure(_group_sums(hist, group, len(fans)), None if moments is None
-                            else _group_sums(moments, group, len(fans)), images.bins)
+    value = _group_values(images, ref_t[kept], mov_t[kept], group, len(fans), measure)
     which = fans // k.max()
     gain = value - base[which]
-    threshold = GAIN_FACTOR * gain_thresholds(hist_now.sum(axis=1).astype(np.float64),
-                                              epsilon, epsilon_pixels)
+    threshold = GAIN_FACTOR * gain_thresholds(pixels, epsilon, epsilon_pixels)
     chosen = _best(which, gain) & (gain > threshold[which])
     keep = _independent(cand[which[chosen]], gain[chosen], (b, around), n)
     verts, gains, best = cand[which[chosen]][keep], gain[chosen][keep], fans[chosen][keep]
@@ -460,33 +449,59 @@ def _star_gains(
     (``stars`` as :func:`_stars` gives them) in the swaps' cost (-inf where a triangle folds)
     and :data:`GAIN_FACTOR` times the swaps' threshold for the star's pixels."""
     tested = np.unique(cand_v)
-    # Each star as it is (its triangles' histograms once), then with its vertex at each
-    # candidate.
-    star, start = stars
     measure = COSTS[cost]
-    owner, k = _ragged(start[tested], start[tested + 1] - start[tested])
-    now = np.unique(star[k])
-    at = np.searchsorted(now, star[k])
-    hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
-                                        with_moments=measure.needs_moments)
-    hist_now = _group_sums(hist[at], owner, len(tested))
-    base = measure.measure(hist_now, None if moments is None else _group_sums(
-        moments[at], owner, len(tested)), images.bins)
+    base, pixels = _star_values(images, ref_v, mov_v, tris, tested, stars, measure)
+    # Then each star with its vertex at each candidate.
+    star, start = stars
     owner, k = _ragged(start[cand_v], start[cand_v + 1] - start[cand_v])
     rows = tris[star[k]]
     ref_tri, mov_tri = ref_v[rows], mov_v[rows]
     mov_tri[rows == cand_v[owner][:, None]] = cand_m[owner]  # once in each triangle
     folds = orientation(*mov_tri.transpose(1, 0, 2)) != orientation(*ref_tri.transpose(1, 0, 2))
     folded = np.bincount(owner, weights=folds, minlength=len(cand_v)) > 0
-    hist, moments = triangle_statistics(images, ref_tri, mov_tri,
-                                        with_moments=measure.needs_moments)
-    value = measure.measure(_group_sums(hist, owner, len(cand_v)), None if moments is None
-                            else _group_sums(moments, owner, len(cand_v)), images.bins)
+    value = _group_values(images, ref_tri, mov_tri, owner, len(cand_v), measure)
     group = np.searchsorted(tested, cand_v)
     gain = np.where(folded, -np.inf, value - base[group])
-    threshold = GAIN_FACTOR * gain_thresholds(hist_now.sum(axis=1).astype(np.float64),
-                                              epsilon, epsilon_pixels)
+    threshold = GAIN_FACTOR * gain_thresholds(pixels, epsilon, epsilon_pixels)
     return gain, threshold[group]
+
+
+def _star_values(
+    images: ScoringImages,
+    ref_v: np.ndarray,
+    mov_v: np.ndarray,
+    tris: np.ndarray,
+    verts: np.ndarray,
+    stars: tuple[np.ndarray, np.ndarray],
+    measure: Cost,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each of the ``verts``' star as it is (``stars`` as :func:`_stars` gives them): its
+    consistency in ``measure`` and its pixels, each triangle's histogram counted once."""
+    star, start = stars
+    owner, k = _ragged(start[verts], start[verts + 1] - start[verts])
+    now, at = np.unique(star[k], return_inverse=True)
+    hist, moments = triangle_statistics(images, ref_v[tris[now]], mov_v[tris[now]],
+                                        with_moments=measure.needs_moments)
+    summed = _group_sums(hist[at], owner, len(verts))
+    value = measure.measure(summed, None if moments is None else _group_sums(
+        moments[at], owner, len(verts)), images.bins)
+    return value, summed.sum(axis=1).astype(np.float64)
+
+
+def _group_values(
+    images: ScoringImages,
+    ref_tri: np.ndarray,
+    mov_tri: np.ndarray,
+    owner: np.ndarray,
+    groups: int,
+    measure: Cost,
+) -> np.ndarray:
+    """The consistency in ``measure`` of each group of triangles ``(ref_tri, mov_tri)``, each
+    triangle's group its ``owner``."""
+    hist, moments = triangle_statistics(images, ref_tri, mov_tri,
+                                        with_moments=measure.needs_moments)
+    return measure.measure(_group_sums(hist, owner, groups), None if moments is None
+                           else _group_sums(moments, owner, groups), images.bins)
 
 
 def _best(cand_v: np.ndarray, gain: np.ndarray) -> np.ndarray:
