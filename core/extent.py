@@ -21,9 +21,9 @@ from pwlreg.core.kernels import affine_fits
 from pwlreg.core.similarity import (
     ScoringImages,
     from_level,
+    group_statistics,
     mutual_information,
     to_level,
-    triangle_statistics,
 )
 
 #: Pairs the local model of a border vertex is fitted to.
@@ -238,10 +238,8 @@ def choose_by_agreement(
         mov_c[moved] = candidates[c, chosen[s_idx] - n]
         mov_tris.append(mov_c)
         rows.append(c * m + chosen[s_idx] - n)
-    hist, _ = triangle_statistics(images, np.concatenate(ref_tris), np.concatenate(mov_tris))
-    owner = np.concatenate(rows)
-    summed = np.zeros((len(candidates) * m, hist.shape[1]), dtype=np.int64)
-    np.add.at(summed, owner, hist)
+    summed, _ = group_statistics(images, np.concatenate(ref_tris), np.concatenate(mov_tris),
+                                 np.concatenate(rows), len(candidates) * m)
     mi, _ = mutual_information(summed, images.bins)
     best = np.argmax(mi.reshape(len(candidates), m), axis=0)
     return candidates[best, np.arange(m)]

@@ -319,11 +319,11 @@ def summed_information(hist, rows, bins, mi, nmi, pixels, table):  # type: ignor
 
 @njit(cache=True, inline="always")
 def _triangle_histogram(  # type: ignore[no-untyped-def]
-    t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins, bin_offset,
+    t, r, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins, bin_offset,
     bin_scale, ref_scale, mov_scale, hist, moments, with_moments, mov_tris
 ):
-    """Histogram (and moments) of triangle ``t`` into ``hist[t]`` (``moments[t]``): the body of
-    :func:`triangle_histograms`."""
+    """Histogram (and moments) of triangle ``t`` added to ``hist[r]`` (``moments[r]``): the
+    body of :func:`triangle_histograms` and :func:`group_histograms`."""
     xmax = mw - 1.0
     ymax = mh - 1.0
     q = np.empty((3, 2), dtype=np.int64)
@@ -331,16 +331,14 @@ def _triangle_histogram(  # type: ignore[no-untyped-def]
     if _load_triangle(ref_tris[t], q) == 0:
         return
     _affine(ref_tris[t], mov_tris[t], m)
-    h_t = hist[t]
+    h_t = hist[r]
     # The steps and the moment sums in locals, not re-read from the arrays: every histogram
-    # increment is a store the compiler cannot prove apart from them (-20 % time).
+    # increment is a store the compiler cannot prove apart from them (-20 % time). The
+    # triangle's moments are summed on their own, then added to the row's: a group's moments
+    # are the sum of its triangles', in their order.
     m00 = m[0, 0]
     m10 = m[1, 0]
-    if with_moments:
-        s0, s1, s2, s3, s4, s5 = (moments[t, 0], moments[t, 1], moments[t, 2],
-                                  moments[t, 3], moments[t, 4], moments[t, 5])
-    else:
-        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
+    s0 = s1 = s2 = s3 = s4 = s5 = 0.0
     y0, y1 = _row_range(q, height)
     for y in range(y0, y1 + 1):
         lo, hi = row_span(q, y, width)
@@ -417,12 +415,12 @@ def _triangle_histogram(  # type: ignore[no-untyped-def]
             mx += m00
             my += m10
     if with_moments:
-        moments[t, 0] = s0
-        moments[t, 1] = s1
-        moments[t, 2] = s2
-        moments[t, 3] = s3
-        moments[t, 4] = s4
-        moments[t, 5] = s5
+        moments[r, 0] += s0
+        moments[r, 1] += s1
+        moments[r, 2] += s2
+        moments[r, 3] += s3
+        moments[r, 4] += s4
+        moments[r, 5] += s5
 
 
 @njit(cache=True)
@@ -454,7 +452,7 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
     mh, mw = moving.shape
     flat = moving.ravel()
     for t in range(ref_tris.shape[0]):
-        _triangle_histogram(t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
+        _triangle_histogram(t, t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
                             bin_offset, bin_scale, ref_scale, mov_scale, hist, moments,
                             with_moments, mov_tris)
 
@@ -482,9 +480,40 @@ def triangle_histograms_parallel(  # type: ignore[no-untyped-def]
     mh, mw = moving.shape
     flat = moving.ravel()
     for t in prange(ref_tris.shape[0]):
-        _triangle_histogram(t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
+        _triangle_histogram(t, t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
                             bin_offset, bin_scale, ref_scale, mov_scale, hist, moments,
                             with_moments, mov_tris)
+
+
+@njit(cache=True, parallel=True)
+def group_histograms(  # type: ignore[no-untyped-def]
+    ref_tris,
+    mov_tris,
+    starts,
+    ref_bins,
+    ref_values,
+    moving,
+    width,
+    height,
+    bins,
+    bin_offset,
+    bin_scale,
+    ref_scale,
+    mov_scale,
+    hist,
+    moments,
+):
+    """:func:`triangle_histograms` summed by group: the triangles ``starts[g]:starts[g + 1]``
+    into ``hist[g]`` (and ``moments[g]``, each triangle's moments added in their order),
+    the groups shared among threads."""
+    with_moments = moments.shape[0] > 0
+    mh, mw = moving.shape
+    flat = moving.ravel()
+    for g in prange(starts.shape[0] - 1):
+        for t in range(starts[g], starts[g + 1]):
+            _triangle_histogram(t, g, ref_tris, ref_bins, ref_values, flat, mh, mw, width,
+                                height, bins, bin_offset, bin_scale, ref_scale, mov_scale,
+                                hist, moments, with_moments, mov_tris)
 
 
 @njit(cache=True, inline="always")

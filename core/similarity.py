@@ -219,6 +219,51 @@ def triangle_statistics(
     return hist, (moments if with_moments else None)
 
 
+def group_statistics(
+    images: ScoringImages,
+    reference_triangles: np.ndarray,
+    moving_triangles: np.ndarray,
+    owner: np.ndarray,
+    groups: int,
+    with_moments: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`triangle_statistics` summed by group, without a row per triangle.
+
+    Parameters
+    ----------
+    images : ScoringImages
+    reference_triangles, moving_triangles : ndarray, shape (T, 3, 2)
+    owner : ndarray of int, shape (T,)
+        Each triangle's group, in ``[0, groups)``.
+    groups : int
+    with_moments : bool
+
+    Returns
+    -------
+    hist : ndarray of int64, shape (groups, M * M)
+        The sum of the group's triangles' histograms (the same counts).
+    moments : ndarray of float64, shape (groups, 6) or None
+        The sum of its triangles' moments, added in their order (the same values bit for bit
+        as summing :func:`triangle_statistics`' rows in that order).
+    """
+    ref_tri = np.ascontiguousarray(reference_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    mov_tri = np.ascontiguousarray(moving_triangles, dtype=np.float64).reshape(-1, 3, 2)
+    owner = np.asarray(owner, dtype=np.int64)
+    order = np.argsort(owner, kind="stable")
+    starts = np.searchsorted(owner[order], np.arange(groups + 1))
+    m = images.bins
+    hist = np.zeros((groups, m * m), dtype=np.int64)
+    moments = np.zeros((groups if with_moments else 0, 6), dtype=np.float64)
+    if len(ref_tri):
+        kernels.group_histograms(
+            ref_tri[order], mov_tri[order], starts, images.reference_bins,
+            images.reference_values, images.moving, images.shape[1], images.shape[0], m,
+            images.moving_bin_offset, images.moving_bin_scale, images.reference_scale,
+            images.moving_scale, hist, moments,
+        )
+    return hist, (moments if with_moments else None)
+
+
 def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:
     """MI and NMI (bits) of joint histograms.
 

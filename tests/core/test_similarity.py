@@ -8,6 +8,7 @@ from pwlreg.core.mesh import Mesh
 from pwlreg.core.optimize import TriangleCache, quad_keys, quad_triples
 from pwlreg.core.raster import quantize
 from pwlreg.core.similarity import (
+    group_statistics,
     level_range,
     mutual_information,
     ncc,
@@ -103,6 +104,28 @@ def test_global_histogram_equals_sum_of_triangles_and_dense_path():
         a = ref_bin(sel)
         b = mov_bin(sel)
         np.testing.assert_array_equal(hist[t], np.bincount(a * 16 + b, minlength=256))
+
+
+def test_group_statistics_sum_their_triangles_in_order():
+    ref, mov, pts, mpts = _pair(2)
+    tris = Delaunay(pts).simplices
+    images = prepare_images(ref, mov, 16)
+    # Triangles in several groups, out of group order, one group empty; some triangles twice.
+    pick = np.concatenate([np.arange(len(tris)), [0, 3, 3]])
+    owner = np.random.default_rng(0).integers(0, 5, len(pick))
+    owner[owner == 2] = 4
+    hist, mom = triangle_statistics(images, pts[tris[pick]], mpts[tris[pick]],
+                                    with_moments=True)
+    group_hist, group_mom = group_statistics(images, pts[tris[pick]], mpts[tris[pick]], owner, 5,
+                                             with_moments=True)
+    for g in range(5):
+        np.testing.assert_array_equal(group_hist[g], hist[owner == g].sum(axis=0))
+        expected = np.zeros(6)
+        for row in mom[owner == g]:
+            expected = expected + row
+        np.testing.assert_array_equal(group_mom[g], expected)
+    assert not group_hist[2].any() and group_hist.sum() == hist.sum()
+    assert group_statistics(images, pts[tris], mpts[tris], owner[:len(tris)], 5)[1] is None
 
 
 def test_quad_histogram_is_exactly_sum_of_its_triangles():
