@@ -48,6 +48,7 @@ from pwlreg.core.reliability import (
 from pwlreg.core.similarity import (
     ScoringImages,
     from_level,
+    group_statistics,
     mutual_information,
     to_level,
     triangle_statistics,
@@ -397,9 +398,8 @@ def _raises_mi(
     # Several points often split one large triangle: its histogram once.
     _, first, each = np.unique(owner_index, return_index=True, return_inverse=True)
     whole, _ = triangle_statistics(images, ref_tri[first], mov_tri[first])
-    parts, _ = triangle_statistics(images, split_ref.reshape(-1, 3, 2),
-                                   split_mov.reshape(-1, 3, 2))
-    parts = parts.reshape(k, 3, -1).sum(axis=1)
+    parts, _ = group_statistics(images, split_ref.reshape(-1, 3, 2),
+                                split_mov.reshape(-1, 3, 2), np.repeat(np.arange(k), 3), k)
     whole = whole[each.ravel()]
     before = mutual_information(whole, images.bins)[1]
     after = mutual_information(parts, images.bins)[1]
