@@ -86,9 +86,6 @@ class Mesh:
         if self.reference.shape != self.moving.shape:
             raise ValueError("reference and moving vertices must have the same shape")
         ref_xy, mov_xy = fixed_point(self.reference), fixed_point(self.moving)
-        # Tuples of Python ints for the single predicates, arrays for the batched ones.
-        self.ref_fixed = list(zip(*ref_xy.T.tolist(), strict=True))
-        self.mov_fixed = list(zip(*mov_xy.T.tolist(), strict=True))
         self._fixed_arrays = (ref_xy, mov_xy)
         tris = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
         if len(tris) and (tris.min() < 0 or tris.max() >= len(self.reference)):
@@ -105,6 +102,18 @@ class Mesh:
         self._rows = tris
         self._stamps = np.arange(len(tris))
         self._changed: list[int] = []
+
+    # Tuples of Python ints for the single predicates (the batched ones take the arrays): made
+    # when first asked for (a mesh the compiled search alone works on never needs them).
+    @cached_property
+    def ref_fixed(self) -> list[tuple[int, int]]:
+        """Reference vertices in fixed point (:func:`core.raster.fixed_point`), as tuples."""
+        return list(zip(*self._fixed_arrays[0].T.tolist(), strict=True))
+
+    @cached_property
+    def mov_fixed(self) -> list[tuple[int, int]]:
+        """Moving vertices in fixed point, as tuples."""
+        return list(zip(*self._fixed_arrays[1].T.tolist(), strict=True))
 
     @cached_property
     def _edges(self) -> dict[Edge, list[int]]:
