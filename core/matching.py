@@ -52,6 +52,7 @@ from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.imaging import check_image, to_gray8
 from pwlreg.core.kernels import spaced
 from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.raster import first_occurrences
 from pwlreg.core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
 from pwlreg.core.similarity import from_level
 
@@ -695,8 +696,7 @@ def _min_distance_greedy(points: np.ndarray, order: np.ndarray, min_distance: fl
     """Indices (in ``order``) of points kept by greedy minimum-distance suppression."""
     if min_distance <= 0:
         # Only exact duplicates go.
-        _, first = np.unique(points[order], axis=0, return_index=True)
-        return order[np.sort(first)]
+        return order[np.sort(first_occurrences(points[order]))]
     ordered = np.ascontiguousarray(points[order], dtype=np.float64)
     return order[spaced(ordered, float(min_distance), len(order))].astype(np.intp)
 
@@ -957,8 +957,7 @@ def _client(
     rejected["outside image"] = int(np.count_nonzero(finite & ~inside))
     idx = np.flatnonzero(inside)
     # A reference point given twice cannot be a mesh vertex twice: keep its first pair.
-    _, first = np.unique(ref[idx], axis=0, return_index=True)
-    unique = idx[np.sort(first)]
+    unique = idx[np.sort(first_occurrences(ref[idx]))]
     rejected["duplicate"] = len(idx) - len(unique)
     reason = np.where(finite, "outside image", "not finite")
     reason[idx] = "duplicate"

@@ -33,6 +33,14 @@ def quantize(points: np.ndarray) -> np.ndarray:
     return fixed_point(points) / SUBPIXEL
 
 
+def first_occurrences(points: np.ndarray) -> np.ndarray:
+    """Index of the first of each distinct point of ``points`` ``(N, 2)``, in the order of the
+    points sorted by x then y: ``np.unique(points, axis=0, return_index=True)[1]``, a tenth
+    of its time (each row one complex number, whose sort is the same lexicographic one)."""
+    rows = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 2)
+    return np.unique(rows.view(np.complex128).ravel(), return_index=True)[1]
+
+
 def fixed_point(points: np.ndarray) -> np.ndarray:
     """Coordinates as int64 multiples of ``1 / SUBPIXEL`` pixel (the kernels' input)."""
     # floor(v + 0.5), as kernels.to_fixed: the kernels quantize their input the same way.

@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.mesh import Edge, Mesh, edge_key
-from pwlreg.core.raster import quantize, triangle_areas
+from pwlreg.core.raster import first_occurrences, quantize, triangle_areas
 
 
 @dataclass
@@ -68,10 +68,8 @@ def _deduplicate(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     ref = quantize(reference).reshape(-1, 2)
     mov = quantize(moving).reshape(-1, 2)
-    _, first_ref = np.unique(ref, axis=0, return_index=True)
-    _, first_mov = np.unique(mov, axis=0, return_index=True)
     keep = np.zeros(len(ref), dtype=bool)
-    keep[np.intersect1d(first_ref, first_mov)] = True
+    keep[np.intersect1d(first_occurrences(ref), first_occurrences(mov))] = True
     return ref[keep], mov[keep], keep
 
 

@@ -3,7 +3,15 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull, Delaunay
 
-from pwlreg.core.raster import affine_maps, expand, label_image, orientation, quantize, rasterize
+from pwlreg.core.raster import (
+    affine_maps,
+    expand,
+    first_occurrences,
+    label_image,
+    orientation,
+    quantize,
+    rasterize,
+)
 
 
 def _counts(tri_xy, shape):
@@ -81,3 +89,15 @@ def test_orientation_exact_and_affine_maps():
     A = np.array([[1.5, 0.2, 3.0], [-0.1, 0.9, -2.0]])
     dst = src @ A[:, :2].T + A[:, 2]
     np.testing.assert_allclose(affine_maps(src, dst)[0], A, atol=1e-12)
+
+
+def test_first_occurrences_is_numpys_unique_rows_first_index():
+    rng = np.random.default_rng(0)
+    points = np.round(rng.uniform(-50, 50, (300, 2)) * 4) / 4
+    points[10] = points[200]
+    points[20] = points[21] = points[250]
+    points[30] = (0.0, 3.0)
+    points[31] = (-0.0, 3.0)  # the same point
+    expected = np.unique(points, axis=0, return_index=True)[1]
+    np.testing.assert_array_equal(first_occurrences(points), expected)
+    assert 31 not in first_occurrences(points) and 200 not in first_occurrences(points)
