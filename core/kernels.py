@@ -458,34 +458,6 @@ def triangle_histograms(  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True, parallel=True)
-def triangle_histograms_parallel(  # type: ignore[no-untyped-def]
-    ref_tris,
-    mov_tris,
-    ref_bins,
-    ref_values,
-    moving,
-    width,
-    height,
-    bins,
-    bin_offset,
-    bin_scale,
-    ref_scale,
-    mov_scale,
-    hist,
-    moments,
-):
-    """:func:`triangle_histograms` with the triangles shared among threads (each writes only
-    its own rows, so the result is the same)."""
-    with_moments = moments.shape[0] > 0
-    mh, mw = moving.shape
-    flat = moving.ravel()
-    for t in prange(ref_tris.shape[0]):
-        _triangle_histogram(t, t, ref_tris, ref_bins, ref_values, flat, mh, mw, width, height, bins,
-                            bin_offset, bin_scale, ref_scale, mov_scale, hist, moments,
-                            with_moments, mov_tris)
-
-
-@njit(cache=True, parallel=True)
 def group_histograms(  # type: ignore[no-untyped-def]
     ref_tris,
     mov_tris,
@@ -503,9 +475,11 @@ def group_histograms(  # type: ignore[no-untyped-def]
     hist,
     moments,
 ):
-    """:func:`triangle_histograms` summed by group: the triangles ``starts[g]:starts[g + 1]``
-    into ``hist[g]`` (and ``moments[g]``, each triangle's moments added in their order),
-    the groups shared among threads."""
+    """:func:`triangle_histograms` summed by group, the groups shared among threads: the
+    triangles ``starts[g]:starts[g + 1]`` into ``hist[g]`` (and ``moments[g]``, each
+    triangle's moments added in their order). With ``starts = 0, 1, ..., T`` each triangle
+    is its own group: :func:`triangle_histograms` on threads (each writes only its own row,
+    so the result is the same)."""
     with_moments = moments.shape[0] > 0
     mh, mw = moving.shape
     flat = moving.ravel()
@@ -1739,9 +1713,9 @@ def _cache_rows(tri, mesh, cache, state):  # type: ignore[no-untyped-def]
     ref_bins, ref_values, moving_image = images
     width, height, bins, bin_offset, bin_scale, ref_scale, mov_scale = params
     if m >= PARALLEL_TRIANGLES:
-        triangle_histograms_parallel(ref_tris, mov_tris, ref_bins, ref_values, moving_image,
-                                     width, height, bins, bin_offset, bin_scale, ref_scale,
-                                     mov_scale, out, out_m)
+        group_histograms(ref_tris, mov_tris, np.arange(m + 1), ref_bins, ref_values,
+                         moving_image, width, height, bins, bin_offset, bin_scale, ref_scale,
+                         mov_scale, out, out_m)
     else:
         triangle_histograms(ref_tris, mov_tris, ref_bins, ref_values, moving_image, width,
                             height, bins, bin_offset, bin_scale, ref_scale, mov_scale, out, out_m)

@@ -198,24 +198,7 @@ def triangle_statistics(
     else:
         moments = moments_out
     if n_tri:
-        kernel = (kernels.triangle_histograms_parallel if n_tri >= PARALLEL_TRIANGLES
-                  else kernels.triangle_histograms)
-        kernel(
-            ref_tri,
-            mov_tri,
-            images.reference_bins,
-            images.reference_values,
-            images.moving,
-            images.shape[1],
-            images.shape[0],
-            m,
-            images.moving_bin_offset,
-            images.moving_bin_scale,
-            images.reference_scale,
-            images.moving_scale,
-            hist,
-            moments,
-        )
+        _count(images, ref_tri, mov_tri, hist, moments)
     return hist, (moments if with_moments else None)
 
 
@@ -255,13 +238,31 @@ def group_statistics(
     hist = np.zeros((groups, m * m), dtype=np.int64)
     moments = np.zeros((groups if with_moments else 0, 6), dtype=np.float64)
     if len(ref_tri):
-        kernels.group_histograms(
-            ref_tri[order], mov_tri[order], starts, images.reference_bins,
-            images.reference_values, images.moving, images.shape[1], images.shape[0], m,
-            images.moving_bin_offset, images.moving_bin_scale, images.reference_scale,
-            images.moving_scale, hist, moments,
-        )
+        _count(images, ref_tri[order], mov_tri[order], hist, moments, starts)
     return hist, (moments if with_moments else None)
+
+
+def _count(
+    images: ScoringImages,
+    ref_tri: np.ndarray,
+    mov_tri: np.ndarray,
+    hist: np.ndarray,
+    moments: np.ndarray,
+    starts: np.ndarray | None = None,
+) -> None:
+    """Count the triangles' histograms (and moments, if ``moments`` has rows) into ``hist``:
+    a row each (``starts`` None; on threads from :data:`PARALLEL_TRIANGLES` triangles), or a
+    row for each group of consecutive triangles ``starts[g]:starts[g + 1]``."""
+    images_args = (images.reference_bins, images.reference_values, images.moving,
+                   images.shape[1], images.shape[0], images.bins, images.moving_bin_offset,
+                   images.moving_bin_scale, images.reference_scale, images.moving_scale, hist,
+                   moments)
+    if starts is None and len(ref_tri) < PARALLEL_TRIANGLES:
+        kernels.triangle_histograms(ref_tri, mov_tri, *images_args)
+    else:
+        kernels.group_histograms(ref_tri, mov_tri,
+                                 np.arange(len(ref_tri) + 1) if starts is None else starts,
+                                 *images_args)
 
 
 def mutual_information(hist: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray]:

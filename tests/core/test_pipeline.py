@@ -114,7 +114,7 @@ def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
         "from pwlreg.core.pipeline import warm_up\n"
         "warm_up()\n"
         "names = ['strip_correlation', 'template_peaks', 'spaced', 'triangle_histograms',\n"
-        "         'triangle_histograms_parallel', 'fill_spans', 'warp', 'search_start',\n"
+        "         'group_histograms', 'fill_spans', 'warp', 'search_start',\n"
         "         'search_run', 'containing', 'trimmed_affine_fits', 'affine_fits']\n"
         "print(' '.join(n for n in names if not getattr(kernels, n).signatures))\n"
         "print(gc.get_freeze_count())\n"
