@@ -309,6 +309,9 @@ def main(argv: list[str] | None = None) -> int:
                         "(default 0,1, the scenes the insertion was developed on); else "
                         "comma-separated draws of the synthetic scenes with points (default 0, "
                         "the suite's own; see bench.quality.build_cases)")
+    parser.add_argument("--size", type=trust.parse_size, default=trust.SIZE,
+                        help="with --automatic: WxH of the scenes (default "
+                        f"{trust.SIZE[0]}x{trust.SIZE[1]})")
     args = parser.parse_args(argv)
     configs = CONFIGS if not args.configs else {k: CONFIGS[k] for k in args.configs.split(",")}
     kinds = set(args.kinds.split(","))
@@ -319,7 +322,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.automatic:
         seeds = tuple(int(v) for v in args.seeds.split(",")) if args.seeds else None
-        cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick, seeds=seeds)
+        cases = [_trust_case(c) for c in trust.build_cases(quick=args.quick, seeds=seeds,
+                                                             size=args.size)
                  if c.group not in ("unrelated", "partial overlap")]
     else:
         draws = tuple(int(v) for v in args.seeds.split(",")) if args.seeds else (0,)

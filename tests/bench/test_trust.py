@@ -1,5 +1,9 @@
 """The trust report's scoring (bench.trust) on small scenes."""
 
+import argparse
+
+import numpy as np
+import pytest
 
 from bench import trust
 from bench.scenes import make_unrelated_pair
@@ -46,3 +50,35 @@ def test_other_seeds_replace_the_scene_seeds_and_keep_the_families():
     assert len(scenes) == len([c for c in default if c.group != "unrelated"])
     assert [c.name for c in other if c.group == "unrelated"] == [
         c.name for c in default if c.group == "unrelated"]
+
+
+def test_size_renders_every_case_at_that_size_and_names_it():
+    default = trust.build_cases(quick=True, seeds=(0,))
+    small = trust.build_cases(quick=True, seeds=(0,), size=(320, 240))
+    assert [c.name.replace("-320x240", "") for c in small] == [c.name for c in default]
+    assert all("-320x240-s" in c.name for c in small)
+    assert small[0].make().reference.shape[:2] == (240, 320)
+    assert small[-1].make().reference.shape[:2] == (240, 320)  # an unrelated pair
+
+
+@pytest.mark.parametrize("text", ["1280", "1280x", "axb", "32x32"])
+def test_a_bad_size_is_refused_saying_what_is_expected(text):
+    with pytest.raises(argparse.ArgumentTypeError, match="WxH|at least"):
+        trust.parse_size(text)
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_epipolar_map_error_measures_across_the_lines_in_full_resolution_pixels(scale):
+    # A rectified pair: the epipolar lines are the rows, x'^T F x = y - y'. A map shifted by
+    # (5, 1) pixels of the registered images is 1 / scale pixels off its line at full
+    # resolution, whose Sampson distance is that over sqrt(2); the shift along the line is not
+    # seen.
+    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    h, w = 80, 100
+    ref = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    both = np.array([[0, 1, 2], [1, 3, 2]])
+    d, coverage = trust.epipolar_map_error(F, ref, ref + [5.0, 1.0], both, (h, w), scale=scale)
+    assert coverage == pytest.approx(1.0)
+    assert np.allclose(d, 1.0 / scale / np.sqrt(2))
+    d, coverage = trust.epipolar_map_error(F, ref, ref + [5.0, 0.0], both[:1], (h, w))
+    assert 0.4 < coverage < 0.6 and np.allclose(d, 0.0)
