@@ -1,6 +1,6 @@
 """Quality measures of a piecewise-linear registration against a known truth.
 
-Three families of measures, all pure functions of numpy arrays:
+The measures, all pure functions of numpy arrays:
 
 * **Endpoint error** (pixels): where the mesh sends each reference pixel, against where the
   pixel truly goes in the moving image (:func:`endpoint_error`, :func:`endpoint_error_map`).
@@ -11,7 +11,8 @@ Three families of measures, all pure functions of numpy arrays:
   (:func:`global_mi`), the paper's expression (8), for reporting.
 * **Epipolar line error** (:func:`epipolar_line_error`): how far each pixel's true match lies
   from its epipolar line under an estimated fundamental matrix, which the insertion searches
-  along.
+  along; and its converse against a true fundamental matrix (:func:`epipolar_map_error`): the
+  Sampson distance of the registration's dense map, the score of a camera-only truth.
 * **Disparity correctness** (:func:`disparity_correctness`): a proxy of mesh correctness for
   rectified stereo pairs with a dense disparity but no plane labels (Middlebury): an edge lies on
   one plane only if the disparity is linear along it.
@@ -30,8 +31,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from bench.realdata import sampson_distance
 from pwlreg.core.epipolar import epipolar_lines
-from pwlreg.core.similarity import mutual_information
+from pwlreg.core.similarity import from_level, mutual_information
 from pwlreg.core.warp import piecewise_map
 
 __all__ = [
@@ -221,6 +223,38 @@ def epipolar_line_error(
     lines = epipolar_lines(np.asarray(fundamental, dtype=np.float64),
                            np.column_stack([xs * step, ys * step]).astype(np.float64))
     return np.abs(lines[:, 0] * tx[keep] + lines[:, 1] * ty[keep] + lines[:, 2])
+
+
+def epipolar_map_error(
+    F: np.ndarray,
+    reference_vertices: np.ndarray,
+    moving_vertices: np.ndarray,
+    triangles: np.ndarray,
+    shape: tuple[int, int],
+    *,
+    scale: float = 1.0,
+    step: int = 8,
+) -> tuple[np.ndarray, float]:
+    """Sampson distance to the true fundamental matrix ``F`` of a registration's dense map.
+
+    The map of a mesh registered on images reduced by ``scale`` (its reference grid of
+    ``shape``) is read at every ``step``-th pixel it covers; both positions are taken back to
+    the full-resolution pixels ``F`` is for. A camera-only truth measures the error across the
+    epipolar lines, not along them: a lower bound of the endpoint error.
+
+    Returns
+    -------
+    distances : ndarray
+        Per grid pixel covered, the Sampson distance in full-resolution pixels.
+    coverage : float
+        Share of the grid the mesh covers.
+    """
+    map_x, map_y, label = piecewise_map(reference_vertices, moving_vertices, triangles, shape)
+    ys, xs = np.mgrid[0:shape[0]:step, 0:shape[1]:step]
+    covered = label[ys, xs] >= 0
+    ref = from_level(np.column_stack([xs[covered], ys[covered]]), scale)
+    mov = from_level(np.column_stack([map_x[ys, xs][covered], map_y[ys, xs][covered]]), scale)
+    return sampson_distance(F, ref, mov), float(covered.mean())
 
 
 TRIANGLE_CLASSES = ("extrapolated", "step", "vertex off", "clean")

@@ -45,15 +45,13 @@ import numpy as np
 from scipy.spatial import Delaunay, cKDTree
 
 from bench import middlebury, realdata
-from bench.metrics import endpoint_error, epipolar_line_error, truth_at
+from bench.metrics import endpoint_error, epipolar_line_error, epipolar_map_error, truth_at
 from bench.scenes import make_scene, make_unrelated_pair
 from pwlreg.core.errors import RegistrationError
 from pwlreg.core.extent import local_affine_extrapolation
 from pwlreg.core.matching import find_conjugate_points
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import register, warm_up
-from pwlreg.core.similarity import from_level
-from pwlreg.core.warp import piecewise_map
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "trust"
 SIZE = (640, 480)
@@ -289,42 +287,10 @@ STRECHA_SCALES = (1.0, 0.5)
 STRECHA_STEP = 8
 
 
-def epipolar_map_error(
-    F: np.ndarray,
-    reference_vertices: np.ndarray,
-    moving_vertices: np.ndarray,
-    triangles: np.ndarray,
-    shape: tuple[int, int],
-    *,
-    scale: float = 1.0,
-    step: int = STRECHA_STEP,
-) -> tuple[np.ndarray, float]:
-    """Sampson distance to the true fundamental matrix ``F`` of a registration's dense map.
-
-    The map of a mesh registered on images reduced by ``scale`` (its reference grid of
-    ``shape``) is read at every ``step``-th pixel it covers; both positions are taken back to
-    the full-resolution pixels ``F`` is for. A camera-only truth measures the error across the
-    epipolar lines, not along them: a lower bound of the endpoint error.
-
-    Returns
-    -------
-    distances : ndarray
-        Per grid pixel covered, the Sampson distance in full-resolution pixels.
-    coverage : float
-        Share of the grid the mesh covers.
-    """
-    map_x, map_y, label = piecewise_map(reference_vertices, moving_vertices, triangles, shape)
-    ys, xs = np.mgrid[0:shape[0]:step, 0:shape[1]:step]
-    covered = label[ys, xs] >= 0
-    ref = from_level(np.column_stack([xs[covered], ys[covered]]), scale)
-    mov = from_level(np.column_stack([map_x[ys, xs][covered], map_y[ys, xs][covered]]), scale)
-    return realdata.sampson_distance(F, ref, mov), float(covered.mean())
-
-
 def strecha_section() -> list[dict]:
     """The automatic path on the Strecha photographs (3072 x 2048, calibrated cameras) at
     :data:`STRECHA_SCALES`: verdict, pairs, and the dense map's distance to the true epipolar
-    geometry (:func:`epipolar_map_error`)."""
+    geometry (:func:`bench.metrics.epipolar_map_error`)."""
     rows = []
     for name in realdata.available_pairs():
         if realdata.PAIRS[name][2] != "strecha":
@@ -345,7 +311,8 @@ def strecha_section() -> list[dict]:
                 continue
             row["seconds"] = time.perf_counter() - t
             d, coverage = epipolar_map_error(pair.F, r.reference_vertices, r.moving_vertices,
-                                             r.final_triangles, ref.shape[:2], scale=scale)
+                                             r.final_triangles, ref.shape[:2], scale=scale,
+                                             step=STRECHA_STEP)
             row.update(verdict=r.quality.verdict, points=len(r.points), coverage=coverage,
                        sampson_median=float(np.median(d)), sampson_p90=float(np.percentile(d, 90)),
                        sampson_over_5=float(np.mean(d > 5.0)))

@@ -15,6 +15,7 @@ from bench.metrics import (
     endpoint_error,
     endpoint_error_map,
     epipolar_line_error,
+    epipolar_map_error,
     error_by_triangle,
     error_summary,
     global_mi,
@@ -369,3 +370,20 @@ def test_truth_of_a_silhouette_point_comes_from_the_nearest_pixel_that_sees_the_
     far = np.argwhere(~seen)[0]  # a background pixel: no truth if none is within reach
     if not seen[max(far[0] - 3, 0):far[0] + 4, max(far[1] - 3, 0):far[1] + 4].any():
         assert not np.isfinite(truth_at(s.truth_x, s.truth_y, far[None, ::-1].astype(float))).any()
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_epipolar_map_error_measures_across_the_lines_in_full_resolution_pixels(scale):
+    # A rectified pair: the epipolar lines are the rows, x'^T F x = y - y'. A map shifted by
+    # (5, 1) pixels of the registered images is 1 / scale pixels off its line at full
+    # resolution, whose Sampson distance is that over sqrt(2); the shift along the line is not
+    # seen.
+    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    h, w = 80, 100
+    ref = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    both = np.array([[0, 1, 2], [1, 3, 2]])
+    d, coverage = epipolar_map_error(F, ref, ref + [5.0, 1.0], both, (h, w), scale=scale)
+    assert coverage == pytest.approx(1.0)
+    assert np.allclose(d, 1.0 / scale / np.sqrt(2))
+    d, coverage = epipolar_map_error(F, ref, ref + [5.0, 0.0], both[:1], (h, w))
+    assert 0.4 < coverage < 0.6 and np.allclose(d, 0.0)

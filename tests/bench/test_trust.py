@@ -2,7 +2,6 @@
 
 import argparse
 
-import numpy as np
 import pytest
 
 from bench import trust
@@ -65,20 +64,3 @@ def test_size_renders_every_case_at_that_size_and_names_it():
 def test_a_bad_size_is_refused_saying_what_is_expected(text):
     with pytest.raises(argparse.ArgumentTypeError, match="WxH|at least"):
         trust.parse_size(text)
-
-
-@pytest.mark.parametrize("scale", [1.0, 0.5])
-def test_epipolar_map_error_measures_across_the_lines_in_full_resolution_pixels(scale):
-    # A rectified pair: the epipolar lines are the rows, x'^T F x = y - y'. A map shifted by
-    # (5, 1) pixels of the registered images is 1 / scale pixels off its line at full
-    # resolution, whose Sampson distance is that over sqrt(2); the shift along the line is not
-    # seen.
-    F = np.array([[0.0, 0, 0], [0, 0, -1], [0, 1, 0]])
-    h, w = 80, 100
-    ref = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
-    both = np.array([[0, 1, 2], [1, 3, 2]])
-    d, coverage = trust.epipolar_map_error(F, ref, ref + [5.0, 1.0], both, (h, w), scale=scale)
-    assert coverage == pytest.approx(1.0)
-    assert np.allclose(d, 1.0 / scale / np.sqrt(2))
-    d, coverage = trust.epipolar_map_error(F, ref, ref + [5.0, 0.0], both[:1], (h, w))
-    assert 0.4 < coverage < 0.6 and np.allclose(d, 0.0)
