@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import EpipolarModel, pixel_scaling
-from pwlreg.core.imaging import PictureRecipe, matching_picture
+from pwlreg.core.imaging import PictureRecipe, check_raster, matching_picture
 from pwlreg.core.matching import ConjugatePoints
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import Progress, RegistrationResult, parse_options
@@ -111,6 +111,9 @@ def register(
         A :class:`ScaledResult` when either image was over ``level_pixels``.
     """
     opts = parse_options(options)
+    for image, field in ((reference, "reference"), (moving, "moving")):
+        if isinstance(image, np.ndarray):
+            check_raster(image, field)
     sources = [image if not isinstance(image, np.ndarray) else None
                for image in (reference, moving)]
     shapes = [(s.height, s.width) if s is not None else image.shape[:2]

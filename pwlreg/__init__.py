@@ -40,7 +40,7 @@ from pwlreg.core.formats.geotiff import open_image
 from pwlreg.core.formats.points import GCPS_KEYWORD
 from pwlreg.core.io import load_points, read_image
 from pwlreg.core.options import RegistrationOptions
-from pwlreg.core.pipeline import STAGES, RegistrationResult
+from pwlreg.core.pipeline import STAGES, RegistrationResult, parse_options
 from pwlreg.core.results import Sources, write_outputs
 from pwlreg.core.scaled import register as _register
 
@@ -75,6 +75,9 @@ def _image(value: ImageLike, field: str, files: contextlib.ExitStack) -> Any:
         return value
     if isinstance(value, bytes):
         return read_image(value, field=field)
+    if not isinstance(value, str | os.PathLike):
+        raise InputError(f"{field} must be an image array, encoded image bytes or a path; got "
+                         f"{type(value).__name__}", field)
     image = open_image(value, field=field)
     return files.enter_context(image) if hasattr(image, "close") else image
 
@@ -129,8 +132,7 @@ def register(
     UnreliableResultError
         The verdict is ``unreliable`` and ``on_unreliable="fail"``.
     """
-    merged = (options.model_dump(exclude_unset=True) if isinstance(options, RegistrationOptions)
-              else dict(options or {}))
+    merged = parse_options(options).model_dump(exclude_unset=True)
     merged.update(option_values)
     with contextlib.ExitStack() as files:
         return _register(_image(reference, "reference", files), _image(moving, "moving", files),

@@ -60,6 +60,12 @@ def test_register_reports_bad_options_and_inputs() -> None:
         pwlreg.register(ref, mov, optimizer="no-such-optimizer")
     with pytest.raises(pwlreg.InputError):
         pwlreg.register(b"not an image", mov)
+    with pytest.raises(pwlreg.InputError, match="2-D"):
+        pwlreg.register(ref[0], mov)
+    with pytest.raises(pwlreg.InputError, match="got list"):
+        pwlreg.register(ref.tolist(), mov)
+    with pytest.raises(pwlreg.InputError, match="mapping"):
+        pwlreg.register(ref, mov, options="bins=32")
 
 
 def test_register_takes_the_moving_geotiffs_own_gcps(tmp_path: Path) -> None:
