@@ -9,6 +9,7 @@ measures with it how much of the mesh the images contradict.
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -20,14 +21,28 @@ import numpy as np
 #: error 13.55 px at half the side, 13.53 px at a quarter; 1083 and 1072 pairs inserted).
 FLOW_SIDE = 320
 
+#: Side (pixels) of the patches of DIS's medium preset.
+DIS_PATCH = 8
+
+
+def coarsest_scale(shape: tuple[int, ...], patch: int = DIS_PATCH) -> int:
+    """The coarsest scale DIS starts from on an image of ``shape``, as OpenCV computes it: a
+    search range of a quarter of the longer side, and no level shorter than a patch. A finest
+    scale above it leaves DIS with no level to run (OpenCV 5.0 then reads memory it did not
+    write: a 40x1500 image crashed the process); negative on images DIS cannot measure (a
+    side under a patch, where OpenCV's rounding toward zero says 0 and DIS crashes too)."""
+    longer, shorter = max(shape[:2]), min(shape[:2])
+    return min(int(math.log2(longer / (4.0 * patch)) + 0.5), math.floor(math.log2(shorter / patch)))
+
 
 def flow_scale(shape: tuple[int, ...], side: int = FLOW_SIDE) -> int:
     """DIS's finest scale (a power of two, at least one as in its medium preset) that brings
-    an image of ``shape`` to at most ``side`` pixels a side."""
+    an image of ``shape`` to at most ``side`` pixels a side, no coarser than
+    :func:`coarsest_scale` (nor below 0) allows."""
     scale = 1
     while max(shape[:2]) / 2**scale > side:
         scale += 1
-    return scale
+    return max(min(scale, coarsest_scale(shape)), 0)
 
 
 def residual_flows(
@@ -37,8 +52,13 @@ def residual_flows(
     reference to the registered image and back: two float32 ``(H, W, 2)`` arrays of
     ``(dx, dy)`` pixels.
 
-    Both images are grey uint8 of the same shape.
+    Both images are grey uint8 of the same shape. On an image too small for DIS
+    (:func:`coarsest_scale` negative: a side under 8 pixels or both under 12) the flows are NaN:
+    nothing measured.
     """
+    if coarsest_scale(reference.shape) < 0:
+        unmeasured = np.full((*reference.shape[:2], 2), np.nan, np.float32)
+        return unmeasured, unmeasured.copy()
     finest = flow_scale(reference.shape, side)
 
     def flow(a: np.ndarray, b: np.ndarray) -> np.ndarray:

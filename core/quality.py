@@ -298,8 +298,9 @@ def residual_share(
     # Unmapped pixels show the reference itself: no false motion at the mesh's border.
     registered = np.where(seen, resampled, reference)
     forward, backward = residual_flows(reference, registered, side=RESIDUAL_FLOW_SIDE)
-    off = (np.hypot(forward[..., 0], forward[..., 1]) > RESIDUAL_PX) | (
-        forward_backward_error(forward, backward) > RESIDUAL_FB_PX)
+    # Written as "not within" so that a flow DIS could not measure (NaN) counts as off.
+    off = ~(np.hypot(forward[..., 0], forward[..., 1]) <= RESIDUAL_PX) | ~(
+        forward_backward_error(forward, backward) <= RESIDUAL_FB_PX)
     outer_off = np.count_nonzero(off & outer & flow_texture(reference, RESIDUAL_FLOW_SIDE))
     return (float(np.count_nonzero(off & judged)) / float(np.count_nonzero(judged)),
             outer_off / off.size)
