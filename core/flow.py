@@ -36,9 +36,9 @@ def coarsest_scale(shape: tuple[int, ...], patch: int = DIS_PATCH) -> int:
 
 
 def flow_scale(shape: tuple[int, ...], side: int = FLOW_SIDE) -> int:
-    """DIS's finest scale (a power of two, at least one as in its medium preset) that brings
-    an image of ``shape`` to at most ``side`` pixels a side, no coarser than
-    :func:`coarsest_scale` (nor below 0) allows."""
+    """DIS's finest scale (a power of two) that brings an image of ``shape`` to at most
+    ``side`` pixels a side: at least 1 as in its medium preset, but never above
+    :func:`coarsest_scale` (0 on images too short for scale 1)."""
     scale = 1
     while max(shape[:2]) / 2**scale > side:
         scale += 1
