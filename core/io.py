@@ -11,7 +11,7 @@ import io
 import json
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -156,6 +156,17 @@ def read_image(
     return image
 
 
+def load_json(text: str | bytes, field: str) -> Any:
+    """``json.loads`` of a client's document; :class:`InputError` naming ``field`` when it is
+    not JSON or nests deeper than the decoder's recursion allows (about a thousand levels)."""
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{field} is not valid JSON: {exc}", field) from None
+    except RecursionError:
+        raise InputError(f"{field} is JSON nested too deeply", field) from None
+
+
 def load_points(
     data: bytes | str,
     field: str = "points",
@@ -188,12 +199,7 @@ def load_points(
     if not text:
         raise InputError(f"{field} is empty", field)
     if text[0] in "{[":
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise InputError(f"{field} is not valid JSON: {exc}", field) from exc
-        except RecursionError as exc:
-            raise InputError(f"{field} JSON is nested too deeply", field) from exc
+        doc = load_json(text, field)
         if not isinstance(doc, dict) or "reference" not in doc or "moving" not in doc:
             raise InputError(
                 f'{field} JSON must be an object with "reference" and "moving" lists of [x, y]',

@@ -22,7 +22,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import ipaddress
-import json
 import logging
 import os
 import secrets
@@ -38,6 +37,8 @@ from urllib.parse import SplitResult, urlsplit, urlunsplit
 
 import httpx
 
+from pwlreg.core.errors import InputError
+from pwlreg.core.io import load_json
 from pwlreg.service import __version__
 from pwlreg.service.logs import job_extra
 from pwlreg.service.settings import Settings
@@ -255,9 +256,9 @@ def parse_callback(
     if subscriber is None:
         return None
     try:
-        value = json.loads(subscriber)
-    except json.JSONDecodeError as exc:
-        raise invalid_input(f"subscriber is not valid JSON: {exc}", "subscriber") from None
+        value = load_json(subscriber, "subscriber")
+    except InputError as exc:
+        raise invalid_input(str(exc), "subscriber") from None
     members = ("successUri", "failedUri", "inProgressUri")
     if (
         not isinstance(value, dict)

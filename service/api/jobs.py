@@ -24,7 +24,7 @@ from pydantic import ValidationError
 from pwlreg.core.errors import InputError
 from pwlreg.core.formats.geotiff import read_by_windows
 from pwlreg.core.formats.points import is_gis_points
-from pwlreg.core.io import load_points, probe_image
+from pwlreg.core.io import load_json, load_points, probe_image
 from pwlreg.core.matching import BORDER_TOLERANCE, MIN_MESH_PAIRS, inside_image
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.results import RESULTS, ResultFormat
@@ -142,9 +142,9 @@ def parse_options(data: bytes) -> dict[str, Any]:
     if not text:
         return RegistrationOptions().model_dump(mode="json")
     try:
-        value = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise invalid_input(f"options is not valid JSON: {exc}", "options") from None
+        value = load_json(text, "options")
+    except InputError as exc:
+        raise invalid_input(str(exc), "options") from None
     if not isinstance(value, dict):
         raise invalid_input("options must be a JSON object, e.g. {\"bins\": 32}", "options")
     try:

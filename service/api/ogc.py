@@ -41,6 +41,8 @@ from fastapi.responses import JSONResponse, RedirectResponse
 from pydantic import ValidationError
 from python_multipart.multipart import parse_options_header
 
+from pwlreg.core.errors import InputError
+from pwlreg.core.io import load_json
 from pwlreg.core.results import RESULTS
 from pwlreg.service import __version__
 from pwlreg.service.api import jobs
@@ -438,9 +440,9 @@ async def _receive_execute(request: Request, services: Services, staging: Path) 
     settings = services.settings
     body = await _read_body(request, _body_limit(settings.max_upload_bytes))
     try:
-        document = await run_in_threadpool(json.loads, body)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise malformed_request(f"the execute request is not valid JSON: {exc}") from None
+        document = await run_in_threadpool(load_json, body, "the execute request")
+    except InputError as exc:
+        raise malformed_request(str(exc)) from None
     try:
         execute = ExecuteRequest.model_validate(document)
     except ValidationError as exc:

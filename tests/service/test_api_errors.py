@@ -389,3 +389,19 @@ def test_random_queries_and_ids_never_cause_a_server_error(
         for path in ("", "/mesh", "/registered.png", "/convergence"):
             response = client.get(f"/v1/jobs/{quote(job_id, safe='')}{path}")
             assert response.status_code < 500, response.text
+
+
+DEEP = "[" * 3000 + "]" * 3000  # past the JSON decoder's recursion limit
+
+
+def test_json_nested_past_the_decoder_is_a_4xx_problem(server: Server, pair: Pair) -> None:
+    with server.client() as client:
+        options = client.post("/v1/jobs", files=_files(pair), data={"options": f'{{"a": {DEEP}}}'})
+        subscriber = client.post("/v1/jobs", files=_files(pair),
+                                 data={"subscriber": f'{{"successUri": {DEEP}}}'})
+        execute = client.post("/processes/pwl-registration/execution",
+                              content=f'{{"inputs": {DEEP}}}'.encode(),
+                              headers={"Content-Type": "application/json"})
+    assert "nested too deeply" in assert_problem(options, 422, field="options")["detail"]
+    assert "nested too deeply" in assert_problem(subscriber, 422, field="subscriber")["detail"]
+    assert "nested too deeply" in assert_problem(execute, 400)["detail"]
