@@ -211,10 +211,12 @@ class RegistrationOptions(BaseModel):
     )
     max_points: int = Field(
         1000,
-        ge=3,
+        ge=10,
         le=20_000,
         description="Most automatically matched pairs kept (the spread step keeps the strongest "
-        "of each grid cell first). 1000 vertices give about 2000 triangles, vertices about 80 px "
+        "of each grid cell first); at least 10, the pairs the projective epipolar filter "
+        "needs (fewer always failed, as if the images shared no detail). 1000 vertices give "
+        "about 2000 triangles, vertices about 80 px "
         "apart on a 3072x2048 image: dense enough to follow the planes of a building; every "
         "extra vertex adds about 3 edges to the MI search.",
     )

@@ -229,6 +229,7 @@ def test_unknown_or_repeated_part_is_422(server: Server, pair: Pair) -> None:
         ('{"cost": "entropy"}', "options.cost"),
         ('{"colour": "blue"}', "options.colour"),
         ('{"epsilon": -0.5, "bins": 1000}', "options.epsilon"),
+        ('{"max_points": 3}', "options.max_points"),
     ],
 )
 def test_invalid_options_are_422_with_the_field(
