@@ -301,7 +301,12 @@ class Georeference:
                          t.d * p[:, 0] + t.e * p[:, 1] + t.f], axis=1)
 
     def to_pixels(self, coords: np.ndarray) -> np.ndarray:
-        """(N, 2) map coordinates -> (N, 2) pixel positions (centre convention)."""
+        """(N, 2) map coordinates -> (N, 2) pixel positions (centre convention);
+        :class:`InputError` when the geotransform has no inverse (a pixel of zero size)."""
+        if self.transform.is_degenerate:
+            raise InputError("the reference GeoTIFF's geotransform is degenerate (a pixel of "
+                             f"zero size: {tuple(self.transform)[:6]}): map coordinates cannot "
+                             "be placed on it", "reference")
         q = np.asarray(coords, np.float64).reshape(-1, 2)
         t = ~self.transform
         return np.stack([t.a * q[:, 0] + t.b * q[:, 1] + t.c - 0.5,

@@ -307,6 +307,12 @@ def test_gcps_of_the_moving_geotiff_give_the_same_mesh_as_json_points(tmp_path):
     other.write_bytes(geotiff(pair.moving[:, :100, :120]))
     with pytest.raises(InputError, match="GCPs must be those of the moving image"):
         load_points(with_gcps, reference=ref_path, moving=other)
+    # A reference whose pixels have no size cannot place the GCPs' map coordinates.
+    flat = tmp_path / "flat.tif"
+    flat.write_bytes(geotiff(pair.reference, transform=Affine(0, 0, 500000, 0, 0, 4000000)))
+    with pytest.raises(InputError, match="degenerate") as err:
+        load_points(with_gcps, reference=flat, moving=mov_path)
+    assert err.value.field == "reference"
 
 
 # --- a real multispectral scene ------------------------------------------------------------------
