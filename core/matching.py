@@ -401,9 +401,10 @@ def detect_corners(
         return np.empty((0, 2))
     pts = from_level(corners.reshape(-1, 2).astype(np.float64), scale)
     h, w = gray.shape
-    # cornerSubPix needs the search window inside the image.
+    # cornerSubPix needs the search window inside the image, and an image of at least twice
+    # the window and 5 more pixels a side (a 5000x200 pair's coarse level has 13 rows).
     pts = pts[(pts[:, 0] >= 6) & (pts[:, 0] <= w - 7) & (pts[:, 1] >= 6) & (pts[:, 1] <= h - 7)]
-    if len(pts):
+    if len(pts) and min(h, w) >= 2 * 5 + 5:
         refined = (
             cv2.cornerSubPix(
                 gray,

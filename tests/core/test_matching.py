@@ -20,6 +20,7 @@ from pwlreg.core.matching import (
     ConjugatePoints,
     _lk_pair,
     detect_corners,
+    estimate_global_prior,
     find_conjugate_points,
     match_lk,
     match_sift,
@@ -516,3 +517,18 @@ def test_real_data_helpers_match_the_shipped_fundamental_matrix():
 
 def test_conjugate_points_type_is_exported():
     assert ConjugatePoints.__dataclass_params__.frozen
+
+
+def test_a_wide_pair_is_tracked_although_its_coarse_level_is_a_few_rows_high() -> None:
+    # 5000x200: the coarse prior's level (at most COARSE_SIDE wide) has 13 rows, fewer than
+    # cv2.cornerSubPix's 5x5 window needs (it asserted, and the job failed as an internal error).
+    rng = np.random.default_rng(3)
+    big = cv2.GaussianBlur((rng.random((208, 5008)) * 255).astype(np.uint8), (0, 0), 1.5)
+    big = cv2.normalize(big, None, 0, 255, cv2.NORM_MINMAX)
+    ref, mov = np.ascontiguousarray(big[4:204, 4:5004]), np.ascontiguousarray(big[5:205, 6:5006])
+    assert len(detect_corners(cv2.resize(ref, (320, 13)), 100, 3.0)) > 0
+    estimate_global_prior(ref, mov)  # None or a homography, never an OpenCV assertion
+    matches = match_lk(ref, mov, 500, 5.0)
+    assert len(matches.reference) > 100
+    shift = np.median(matches.moving - matches.reference, axis=0)
+    np.testing.assert_allclose(shift, [-2.0, -1.0], atol=0.1)
