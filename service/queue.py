@@ -113,6 +113,10 @@ class LocalProcessQueue(JobQueue):
         self._inflight: dict[str, Future[str]] = {}
         self._executor: ProcessPoolExecutor | None = None
         self._broken = False
+        # Jobs that were running when a worker process died: any of them may be the one that
+        # killed it, so each runs alone until it ends without breaking the pool (then only the
+        # culprit keeps losing attempts, not the jobs that shared the pool with it).
+        self._suspects: set[str] = set()
 
     # --- interface -----------------------------------------------------------------------------
 
@@ -197,11 +201,16 @@ class LocalProcessQueue(JobQueue):
         with self._lock:
             free = self.settings.workers - len(self._inflight)
             busy = list(self._inflight)
-        if free <= 0:
+            suspects = set(self._suspects)
+        if free <= 0 or suspects.intersection(busy):
             return
         for job_id in self.store.next_accepted(free, exclude=busy):
             if self._stopping:
                 return
+            if job_id in suspects:
+                if busy:
+                    return  # it waits for the pool to empty; the jobs after it wait too
+                free = 0  # it runs alone: nothing after it in this pass
             try:
                 future = self._executor.submit(run_in_process, job_id)
             except (BrokenProcessPool, RuntimeError):
@@ -209,13 +218,20 @@ class LocalProcessQueue(JobQueue):
                 return
             with self._lock:
                 self._inflight[job_id] = future
+            busy.append(job_id)
             future.add_done_callback(partial(self._done, job_id))
+            if free == 0:
+                return
 
     def _done(self, job_id: str, future: Future[str]) -> None:
+        exc = None if future.cancelled() else future.exception()
         with self._lock:
             self._inflight.pop(job_id, None)
+            if isinstance(exc, BrokenProcessPool):
+                self._suspects.add(job_id)
+            else:
+                self._suspects.discard(job_id)
         if not future.cancelled():
-            exc = future.exception()
             if isinstance(exc, BrokenProcessPool):
                 # A worker process died (killed, out of memory). Its job's lease will expire
                 # and the maintenance pass requeues it; the pool is replaced.

@@ -20,3 +20,14 @@ def slow_register(reference: Any, moving: Any, points: Any = None, options: Any 
             progress("matching", 0.5 * i / steps)
         time.sleep(0.05)
     return register(reference, moving, points=points, options=options, progress=progress)
+
+
+def crash_register(reference: Any, moving: Any, points: Any = None, options: Any = None,
+                   progress: Any = None) -> Any:
+    """Kill the worker process (as a crash inside a native library does) when the job's
+    options carry ``seed`` 13; otherwise :func:`slow_register`."""
+    seed = options.get("seed") if isinstance(options, dict) else getattr(options, "seed", None)
+    if seed == 13:
+        time.sleep(0.5)  # the other job is running by then
+        os._exit(139)
+    return slow_register(reference, moving, points, options, progress)

@@ -80,3 +80,24 @@ def test_jobs_survive_a_killed_and_a_stopped_server(
         assert done["attempts"] == 1
         registered = client.get(f"/v1/jobs/{stopped_job}/registered.png")
         assert registered.status_code == 200 and registered.content[:4] == b"\x89PNG"
+
+
+def test_a_job_whose_worker_dies_does_not_take_its_neighbour_with_it(
+    start_server: Callable[..., Server], pair: Pair
+) -> None:
+    # Two workers: a job that kills its process (as a crash inside a native library does)
+    # breaks the pool under the job beside it. Both then run alone, so only the culprit uses
+    # up its attempts.
+    server = start_server(**{**ENV, "PWLREG_WORKERS": "2", "PWLREG_TEST_SLOW_SECONDS": "2",
+                             "PWLREG_RUNNER": "tests.service.runners:crash_register",
+                             "PWLREG_MAX_ATTEMPTS": "2"})
+    with server.client() as client:
+        good = submit(client, pair).json()["id"]
+        wait_for(client, good, lambda j: j["status"] == "running")
+        culprit = submit(client, pair, options={"seed": 13}).json()["id"]
+        culprit_done = wait_for(client, culprit, timeout=60)
+        good_done = wait_for(client, good, timeout=60)
+    assert culprit_done["status"] == "failed", culprit_done
+    assert culprit_done["attempts"] == 2
+    assert good_done["status"] == "successful", good_done
+    assert good_done["attempts"] == 2  # the attempt the culprit broke, then one alone
