@@ -31,8 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from bench.realdata import sampson_distance
-from pwlreg.core.epipolar import epipolar_lines
+from pwlreg.core.epipolar import epipolar_lines, sampson_distance
 from pwlreg.core.similarity import from_level, mutual_information
 from pwlreg.core.warp import piecewise_map
 

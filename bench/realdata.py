@@ -25,6 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pwlreg.core.epipolar import sampson_distance
+
 ENV_VAR = "PWLREG_REAL_DATA"
 
 # folder -> (reference file, moving file, ground-truth family)
@@ -206,22 +208,6 @@ def load_pair(name: str, root: Path | None = None) -> RealPair:
 
 
 # --- errors against the ground truth ------------------------------------------------------------
-
-
-def sampson_distance(F: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
-    """Sampson distance (pixels) of each pair to ``x_mov^T F x_ref = 0``.
-
-    ``|x'^T F x| / sqrt((F x)_1^2 + (F x)_2^2 + (F^T x')_1^2 + (F^T x')_2^2)``: the first-order
-    approximation of the distance the pair must move in (x', y', x, y) to satisfy the
-    constraint. ``ref`` and ``mov`` are (N, 2) pixel arrays.
-    """
-    x = np.column_stack([ref, np.ones(len(ref))])
-    xp = np.column_stack([mov, np.ones(len(mov))])
-    Fx = x @ F.T
-    Ftxp = xp @ F
-    num = np.abs(np.sum(xp * Fx, axis=1))
-    den = np.sqrt(Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftxp[:, 0] ** 2 + Ftxp[:, 1] ** 2)
-    return num / den
 
 
 def transfer_error(H: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
