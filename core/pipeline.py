@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import ValidationError
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from pwlreg.core import compilation
 from pwlreg.core.align import align_vertices
 from pwlreg.core.correct import (
     REMOVE_MOVE,
@@ -43,6 +44,7 @@ from pwlreg.core.similarity import (
     prepare_images,
     reduced,
 )
+from pwlreg.core.tiled import ArrayBands, warp_tiles
 from pwlreg.core.triangulation import TriangulationReport, initial_mesh
 from pwlreg.core.warp import warp_image
 
@@ -258,6 +260,8 @@ def register(
                 f"{pts[0].shape} and {pts[1].shape}",
                 "points",
             )
+        if not (np.isfinite(pts[0]).all() and np.isfinite(pts[1]).all()):
+            raise InputError("points contain non-finite coordinates (NaN or infinity)", "points")
     # Given points are never refined by insertion unless asked (``insert_vertices="always"``).
     insert = opts.insert_vertices == "always" or (
         opts.insert_vertices == "automatic" and pts is None)
@@ -471,14 +475,25 @@ def register(
     )
 
 
-def warm_up() -> None:
-    """Compile (or load from numba's cache) the kernels for 8- and 16-bit, grey and colour images.
+def warm_up(*, load: bool = True) -> None:
+    """Compile (or load from numba's cache) the kernels for 8- and 16-bit, grey and colour
+    images, on both paths.
 
     A worker process calls this once at start so that its first job does not pay the
-    compilation (seconds the first time on a machine, a fraction of a second from the cache).
-    Everything the process holds by then (modules, the compiled kernels) is moved out of the
-    garbage collector's reach (:func:`gc.freeze`).
+    compilation (minutes the first time on a machine, a fraction of a second from the cache).
+    Processes compile one at a time (:func:`pwlreg.core.compilation.prepare`); with
+    ``load=False`` this compiles only when the cache is not ready, and loads nothing otherwise
+    (the kernels then load at their first use). Everything the process holds once the kernels
+    are loaded (modules, the compiled kernels) is moved out of the garbage collector's reach
+    (:func:`gc.freeze`).
     """
+    if compilation.prepare(_compile_kernels, load=load):
+        # Those objects (about 144 000) live as long as the process, and each full collection
+        # walked them all: 75 ms, every two to four registrations of the 1024x682 facade pair.
+        gc.freeze()
+
+
+def _compile_kernels() -> None:
     levels = np.arange(64 * 64, dtype=np.int64).reshape(64, 64) * 37 % 251
     # Enough points that the first batch of triangles takes the threaded kernel too.
     grid = np.linspace(2.0, 61.0, 8)
@@ -488,13 +503,15 @@ def warm_up() -> None:
         for img in (grey, np.dstack([grey] * 3)):
             register(img, img, (pts, pts + 0.5), {"epipolar_filter": False})
     # The automatic path's kernels (matching, insertion along the epipolar lines): a textured
-    # stereo pair whose halves lie at two depths.
+    # stereo pair whose halves lie at two depths, in 8 and 16 bits.
     rng = np.random.default_rng(0)
     texture = cv2.resize(rng.integers(0, 256, (48, 64), dtype=np.uint8), (256, 192),
                          interpolation=cv2.INTER_CUBIC)
     shifted = np.concatenate([np.roll(texture, 3, axis=1)[:, :128],
                               np.roll(texture, 9, axis=1)[:, 128:]], axis=1)
-    register(texture, shifted)
-    # Those objects (about 144 000) live as long as the process, and each full collection
-    # walked them all: 75 ms, every two to four registrations of the 1024x682 facade pair.
-    gc.freeze()
+    for dtype, scale in ((np.uint8, 1), (np.uint16, 257)):
+        result = register(texture.astype(dtype) * scale, shifted.astype(dtype) * scale)
+    # The tiled warp of large rasters.
+    for _ in warp_tiles(ArrayBands(shifted), result.reference_vertices, result.moving_vertices,
+                        result.final_triangles, texture.shape, tile=64):
+        pass

@@ -35,7 +35,7 @@ from pwlreg.core.epipolar import EpipolarModel, pixel_scaling
 from pwlreg.core.imaging import PictureRecipe, check_raster, matching_picture
 from pwlreg.core.matching import ConjugatePoints
 from pwlreg.core.options import RegistrationOptions
-from pwlreg.core.pipeline import Progress, RegistrationResult, parse_options
+from pwlreg.core.pipeline import Progress, RegistrationResult, parse_options, warm_up
 from pwlreg.core.pipeline import register as register_level
 from pwlreg.core.raster import quantize
 from pwlreg.core.tiled import LEVEL_PIXELS, ArrayBands, BandSource
@@ -111,6 +111,7 @@ def register(
         A :class:`ScaledResult` when either image was over ``level_pixels``.
     """
     opts = parse_options(options)
+    warm_up(load=False)  # a cold cache: compile in one process at a time
     for image, field in ((reference, "reference"), (moving, "moving")):
         if isinstance(image, np.ndarray):
             check_raster(image, field)

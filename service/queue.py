@@ -27,7 +27,7 @@ from functools import partial
 from pwlreg.service.logs import job_extra
 from pwlreg.service.settings import Settings
 from pwlreg.service.store import FINISHED, JobStatus, JobStore, utcnow
-from pwlreg.service.worker import init_process, ping, run_in_process
+from pwlreg.service.worker import init_process, new_owner, ping, run_in_process
 
 log = logging.getLogger(__name__)
 
@@ -110,13 +110,18 @@ class LocalProcessQueue(JobQueue):
         self._context = multiprocessing.get_context("spawn")
         self._stop_event = self._context.Event()
         self._lock = threading.Lock()
-        self._inflight: dict[str, Future[str]] = {}
+        # job id -> (future, lease owner, executor generation)
+        self._inflight: dict[str, tuple[Future[str], str, int]] = {}
         self._executor: ProcessPoolExecutor | None = None
+        self._generation = 0
         self._broken = False
         # Jobs that were running when a worker process died: any of them may be the one that
-        # killed it, so each runs alone until it ends without breaking the pool (then only the
-        # culprit keeps losing attempts, not the jobs that shared the pool with it).
+        # killed it, so each runs alone until it ends without breaking the pool, and an attempt
+        # counts only when its job broke the pool alone (then only the culprit uses up its
+        # attempts, not the jobs that shared the pool with it).
         self._suspects: set[str] = set()
+        # generation of a broken pool -> the jobs that were running in it when it broke
+        self._broken_batches: dict[int, set[str]] = {}
 
     # --- interface -----------------------------------------------------------------------------
 
@@ -211,13 +216,14 @@ class LocalProcessQueue(JobQueue):
                 if busy:
                     return  # it waits for the pool to empty; the jobs after it wait too
                 free = 0  # it runs alone: nothing after it in this pass
+            owner = new_owner()
             try:
-                future = self._executor.submit(run_in_process, job_id)
+                future = self._executor.submit(run_in_process, job_id, owner)
             except (BrokenProcessPool, RuntimeError):
                 self._broken = True
                 return
             with self._lock:
-                self._inflight[job_id] = future
+                self._inflight[job_id] = (future, owner, self._generation)
             busy.append(job_id)
             future.add_done_callback(partial(self._done, job_id))
             if free == 0:
@@ -225,18 +231,33 @@ class LocalProcessQueue(JobQueue):
 
     def _done(self, job_id: str, future: Future[str]) -> None:
         exc = None if future.cancelled() else future.exception()
+        broken = isinstance(exc, BrokenProcessPool)
+        shared = False
         with self._lock:
-            self._inflight.pop(job_id, None)
-            if isinstance(exc, BrokenProcessPool):
+            _, owner, generation = self._inflight.pop(job_id, (None, "", -1))
+            if broken:
                 self._suspects.add(job_id)
+                # The first job to hear of the break sees the others still in flight.
+                batch = self._broken_batches.setdefault(generation, {
+                    other for other, (_, _, g) in self._inflight.items() if g == generation
+                } | {job_id})
+                shared = len(batch) > 1
             else:
                 self._suspects.discard(job_id)
         if not future.cancelled():
-            if isinstance(exc, BrokenProcessPool):
-                # A worker process died (killed, out of memory). Its job's lease will expire
-                # and the maintenance pass requeues it; the pool is replaced.
+            if broken:
+                # A worker process died (killed, out of memory, a crash in a native library)
+                # and the pool is replaced. A job that broke it alone is the culprit: its lease
+                # expires and the maintenance pass requeues it, the attempt counted. Jobs that
+                # shared the pool get their attempt back now; each then runs alone.
                 log.error("worker pool broken while running job %s: %s", job_id, exc,
                           extra=job_extra(job_id))
+                if shared and self.store.release(
+                    job_id, owner, "requeued: a worker process died while it ran beside other "
+                    "jobs; it runs alone next"
+                ):
+                    log.warning("job %s: attempt given back; it runs alone next", job_id,
+                                extra=job_extra(job_id))
                 self._broken = True
             elif exc is not None:
                 log.error("job %s: worker raised %r", job_id, exc, extra=job_extra(job_id))
@@ -254,7 +275,13 @@ class LocalProcessQueue(JobQueue):
         if old is not None:
             old.shutdown(wait=False, cancel_futures=True)
         with self._lock:
-            self._inflight.clear()
+            # The broken pool's futures call back one after the other, perhaps after this:
+            # those still to call back stay, so that each finds the jobs it ran beside.
+            self._inflight = {job_id: entry for job_id, entry in self._inflight.items()
+                              if not entry[0].done()}
+            self._generation += 1
+            for generation in [g for g in self._broken_batches if g < self._generation - 1]:
+                del self._broken_batches[generation]
         self._executor = self._new_executor()
         log.warning("worker pool replaced")
 

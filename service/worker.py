@@ -285,11 +285,12 @@ class ProgressReporter:
                 return
 
 
-def _owner() -> str:
+def new_owner() -> str:
+    """A lease owner: host, process and a random tag."""
     return f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:8]}"
 
 
-def run_job(job_id: str, context: WorkerContext) -> str:
+def run_job(job_id: str, context: WorkerContext, owner: str | None = None) -> str:
     """Run one job to its end and return its final status (or ``"skipped"``).
 
     A job that cannot be claimed (dismissed meanwhile, finished, or running under another
@@ -297,7 +298,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
     readable message; nothing raised by the registration escapes this function.
     """
     store, storage, settings = context.store, context.storage, context.settings
-    owner = _owner()
+    owner = owner or new_owner()
     job = store.claim(job_id, owner, settings.lease_seconds)
     if job is None:
         return "skipped"
@@ -310,6 +311,11 @@ def run_job(job_id: str, context: WorkerContext) -> str:
         nonlocal lost
         lost = True
         return _settle_lost(job_id, context)
+
+    def dismissed() -> str:
+        storage.remove(job_id)
+        jlog.info("job %s: stopped, dismissed by the client", job_id)
+        return JobStatus.dismissed.value
 
     def fail(error: dict[str, Any], quality: dict[str, Any] | None = None) -> str:
         if store.finish(job_id, owner, JobStatus.failed, error["detail"], error, quality):
@@ -346,9 +352,7 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             return JobStatus.successful.value
         return settle_lost()
     except JobDismissed:
-        storage.remove(job_id)
-        jlog.info("job %s: stopped, dismissed by the client", job_id)
-        return JobStatus.dismissed.value
+        return dismissed()
     except LeaseLost:
         lost = True
         jlog.warning("job %s: lease lost, attempt by %s abandoned", job_id, owner)
@@ -380,6 +384,10 @@ def run_job(job_id: str, context: WorkerContext) -> str:
             problem_document("registration-failed", "Invalid options", 422, str(exc), "options")
         )
     except Exception as exc:  # noqa: BLE001 (a bug must fail the job, not the worker)
+        now = store.get(job_id)
+        if now is None or now.status == JobStatus.dismissed:
+            # Dismissed while it ran: its files were removed under it, which raised here.
+            return dismissed()
         jlog.error("job %s: internal error\n%s", job_id, traceback.format_exc())
         return fail(
             problem_document("internal-error", "Internal error", 500,
@@ -477,11 +485,12 @@ def _watch_parent() -> None:
     threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
-def run_in_process(job_id: str) -> str:
-    """Entry point of the pool: :func:`run_job` with this process's context."""
+def run_in_process(job_id: str, owner: str | None = None) -> str:
+    """Entry point of the pool: :func:`run_job` with this process's context (``owner`` names
+    the lease, so that the dispatcher can give the job back if the process dies)."""
     if _PROCESS_CONTEXT is None:
         raise RuntimeError("worker process not initialised (init_process)")
-    return run_job(job_id, _PROCESS_CONTEXT)
+    return run_job(job_id, _PROCESS_CONTEXT, owner)
 
 
 def ping() -> int:

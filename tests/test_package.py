@@ -66,6 +66,11 @@ def test_register_reports_bad_options_and_inputs() -> None:
         pwlreg.register(ref.tolist(), mov)
     with pytest.raises(pwlreg.InputError, match="mapping"):
         pwlreg.register(ref, mov, options="bins=32")
+    # As the service refuses them in a points file: not dropped silently.
+    rp, mp = book_points()
+    rp[3, 1] = np.nan
+    with pytest.raises(pwlreg.InputError, match="non-finite"):
+        pwlreg.register(ref, mov, (rp, mp))
 
 
 def test_register_takes_the_moving_geotiffs_own_gcps(tmp_path: Path) -> None:

@@ -284,6 +284,27 @@ def test_dismissal_is_not_swallowed_by_a_broad_except(context: WorkerContext, pa
     assert run_job(job_id, context) == "skipped"  # a dismissed job is never claimed again
 
 
+def test_a_job_dismissed_while_its_files_are_written_is_no_internal_error(
+    context: WorkerContext, pair: Pair, caplog: pytest.LogCaptureFixture
+) -> None:
+    job_id = add_job(context, pair)
+
+    def dismissed_under_it(reference, moving, points=None, options=None, progress=None):  # noqa: ANN001
+        # As DELETE does while the results are written: the row, then every file of the job,
+        # and the writer then finds its directory gone.
+        context.store.dismiss(job_id)
+        context.storage.remove(job_id)
+        raise FileNotFoundError(f"{context.storage.jobs / job_id}/work/mesh.json")
+
+    context.runner = dismissed_under_it
+    with caplog.at_level(logging.INFO, logger="pwlreg"):
+        assert run_job(job_id, context) == "dismissed"
+    assert not [r for r in caplog.records if r.levelno >= logging.ERROR]
+    job = context.store.get(job_id)
+    assert job is not None and job.status == JobStatus.dismissed and job.error is None
+    assert not (context.storage.jobs / job_id).exists()
+
+
 def test_an_attempt_taken_over_leaves_the_files_of_its_successor(
     context: WorkerContext, pair: Pair
 ) -> None:
