@@ -154,15 +154,16 @@ def line_foot(line: np.ndarray, points: np.ndarray) -> np.ndarray:
 def pixel_scaling(factor: float | np.ndarray) -> np.ndarray:
     """The homogeneous map ``p -> (p + 0.5) / factor - 0.5``: a pixel's position in the image
     scaled by ``1 / factor`` (one number, or one per axis ``(fx, fy)``), pixel centres kept as
-    :func:`cv2.resize` and :func:`cv2.pyrDown` keep them."""
+    an area average keeps them (:func:`cv2.resize` with ``INTER_AREA``, the blocks of
+    :func:`pwlreg.core.tiled.reduce_area`)."""
     fx, fy = np.broadcast_to(np.asarray(factor, dtype=np.float64), (2,))
     return np.array([[1 / fx, 0, 0.5 / fx - 0.5], [0, 1 / fy, 0.5 / fy - 0.5], [0, 0, 1.0]])
 
 
 def on_level(F: np.ndarray, scale: float) -> np.ndarray:
-    """``F`` for pixels of images reduced by ``scale`` (a pixel ``p`` there is
-    ``(p + 0.5) / scale - 0.5`` in the full images)."""
-    to_full = pixel_scaling(scale)
+    """``F`` for pixels of images halved by :func:`cv2.pyrDown` to ``scale`` (a pixel ``p``
+    there is ``p / scale`` in the full images: :func:`pwlreg.core.similarity.from_level`)."""
+    to_full = np.diag([1.0 / scale, 1.0 / scale, 1.0])
     return to_full.T @ np.asarray(F) @ to_full
 
 

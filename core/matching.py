@@ -290,8 +290,8 @@ def _downscale(gray: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
     """Halve ``gray`` (Gaussian pyramid) until its longer side is at most ``max_side``.
 
     Returns the level and its scale factor ``s`` (level pixel = ``s`` * full pixel; pyrDown
-    keeps (0, 0) at the centre of the top-left pixel up to ``(s - 1) / 2``, corrected by the
-    callers through :func:`core.similarity.to_level` / :func:`core.similarity.from_level`).
+    keeps (0, 0) at the centre of the top-left pixel: :func:`core.similarity.to_level` /
+    :func:`core.similarity.from_level`).
     """
     scale = 1.0
     while max(gray.shape) > max_side:

@@ -118,8 +118,8 @@ def reduced(
     images: ScoringImages, max_side: int, *, bins: int | None = None
 ) -> tuple[ScoringImages, float]:
     """Both images halved (Gaussian pyramid) until the reference's longer side is at most
-    ``max_side``, and the scale: a pixel ``p`` of either image is ``(p + 0.5) * scale - 0.5``
-    there. Both are halved the same number of times, so a shift means the same in both.
+    ``max_side``, and the scale: a pixel ``p`` of either image is ``p * scale`` there
+    (:func:`to_level`). Both are halved the same number of times, so a shift means the same in both.
     ``bins`` (default: those of ``images``) is the joint histogram's size there."""
     bins = images.bins if bins is None else bins
     ref = images.reference_values.reshape(images.shape)
@@ -134,13 +134,17 @@ def reduced(
 
 
 def to_level(points: np.ndarray, scale: float) -> np.ndarray:
-    """Pixels of the full images -> of images reduced by ``scale`` (:func:`reduced`)."""
-    return (np.asarray(points, dtype=np.float64) + 0.5) * scale - 0.5
+    """Pixels of the full images -> of images halved by :func:`cv2.pyrDown` to ``scale``
+    (:func:`reduced`): each halving centres its pixel ``i`` on pixel ``2 i`` (not on the
+    middle of pixels ``2 i`` and ``2 i + 1``, as an area average does), so the centre of the
+    top-left pixel stays where it is and a position is only scaled."""
+    return np.asarray(points, dtype=np.float64) * scale
 
 
 def from_level(points: np.ndarray, scale: float) -> np.ndarray:
-    """Pixels of images reduced by ``scale`` -> of the full images."""
-    return (np.asarray(points, dtype=np.float64) + 0.5) / scale - 0.5
+    """Pixels of images halved by :func:`cv2.pyrDown` to ``scale`` -> of the full images
+    (the inverse of :func:`to_level`)."""
+    return np.asarray(points, dtype=np.float64) / scale
 
 
 def smoothed(images: ScoringImages, sigma: float) -> ScoringImages:

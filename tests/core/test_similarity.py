@@ -8,13 +8,16 @@ from pwlreg.core.mesh import Mesh
 from pwlreg.core.optimize import TriangleCache, quad_keys, quad_triples
 from pwlreg.core.raster import quantize
 from pwlreg.core.similarity import (
+    from_level,
     group_statistics,
     level_range,
     mutual_information,
     ncc,
     prepare_images,
+    reduced,
     ssd,
     summed_information,
+    to_level,
     triangle_statistics,
 )
 from pwlreg.core.warp import piecewise_map
@@ -250,3 +253,20 @@ def test_threaded_kernel_gives_the_serial_histograms_and_moments(monkeypatch):
     serial = triangle_statistics(images, pts[tris], mov[tris], with_moments=True)
     np.testing.assert_array_equal(threaded[0], serial[0])
     np.testing.assert_array_equal(threaded[1], serial[1])
+
+
+def test_level_positions_follow_the_gaussian_pyramid() -> None:
+    # A blob's centre on the images the verdict and the insertion read is to_level of its
+    # centre at full resolution: pyrDown centres its pixel i on pixel 2 i (an area average
+    # would put it half a pixel of the level further), on one halving and on two.
+    y, x = np.mgrid[0:700, 0:1700].astype(np.float64)
+    centre = np.array([[800.3, 333.7]])
+    blob = 200 * np.exp(-((x - centre[0, 0]) ** 2 + (y - centre[0, 1]) ** 2) / (2 * 12.0**2))
+    image = blob.astype(np.uint8)
+    for side in (1000, 500):
+        level, scale = reduced(prepare_images(image, image, 256), side)
+        values = level.reference_values.reshape(level.shape).astype(np.float64)
+        rows, cols = np.mgrid[0:level.shape[0], 0:level.shape[1]]
+        seen = np.array([(values * cols).sum(), (values * rows).sum()]) / values.sum()
+        np.testing.assert_allclose(seen, to_level(centre, scale)[0], atol=0.02)
+        np.testing.assert_allclose(from_level(to_level(centre, scale), scale), centre)
