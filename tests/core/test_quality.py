@@ -171,10 +171,7 @@ def test_a_close_up_of_part_of_the_reference_is_not_doubted_for_its_small_share(
     assert f["measured_moving_coverage"] > MOVING_COVERED
     ref = r.reference_vertices[~r.extrapolated]
     truth = ref * 2.0 - [320.0, 240.0]
-    miss = np.hypot(*(r.moving_vertices[~r.extrapolated] - truth).T)
-    # The worst are a few pixels from the moving image's corner, where the windows that
-    # place them are cut (0.76 px).
-    assert np.median(miss) < 0.05 and miss.max() < 1.0
+    assert np.abs(r.moving_vertices[~r.extrapolated] - truth).max() < 0.5
     assert r.quality.verdict == "good"
 
 
