@@ -32,7 +32,8 @@ import cv2
 import numpy as np
 
 from pwlreg.core.epipolar import epipolar_lines, sampson_distance
-from pwlreg.core.similarity import from_level, mutual_information
+from pwlreg.core.scaled import up
+from pwlreg.core.similarity import mutual_information
 from pwlreg.core.warp import piecewise_map
 
 __all__ = [
@@ -236,9 +237,10 @@ def epipolar_map_error(
 ) -> tuple[np.ndarray, float]:
     """Sampson distance to the true fundamental matrix ``F`` of a registration's dense map.
 
-    The map of a mesh registered on images reduced by ``scale`` (its reference grid of
-    ``shape``) is read at every ``step``-th pixel it covers; both positions are taken back to
-    the full-resolution pixels ``F`` is for. A camera-only truth measures the error across the
+    The map of a mesh registered on images reduced by ``scale`` with an area average
+    (:func:`cv2.resize`, ``INTER_AREA``; its reference grid of ``shape``) is read at every
+    ``step``-th pixel it covers; both positions are taken back to the full-resolution pixels
+    ``F`` is for. A camera-only truth measures the error across the
     epipolar lines, not along them: a lower bound of the endpoint error.
 
     Returns
@@ -251,8 +253,8 @@ def epipolar_map_error(
     map_x, map_y, label = piecewise_map(reference_vertices, moving_vertices, triangles, shape)
     ys, xs = np.mgrid[0:shape[0]:step, 0:shape[1]:step]
     covered = label[ys, xs] >= 0
-    ref = from_level(np.column_stack([xs[covered], ys[covered]]), scale)
-    mov = from_level(np.column_stack([map_x[ys, xs][covered], map_y[ys, xs][covered]]), scale)
+    ref = up(np.column_stack([xs[covered], ys[covered]]), 1.0 / scale)
+    mov = up(np.column_stack([map_x[ys, xs][covered], map_y[ys, xs][covered]]), 1.0 / scale)
     return sampson_distance(F, ref, mov), float(covered.mean())
 
 
