@@ -242,7 +242,7 @@ def parse_callback(
     service.problems.Problem
         422 with ``field`` ``callback`` or ``subscriber[.<member>]``.
     """
-    from pwlreg.service.problems import invalid_input
+    from pwlreg.service.problems import from_input_error, invalid_input
 
     if callback is not None and subscriber is not None:
         raise invalid_input("give either callback or subscriber, not both", "callback")
@@ -258,7 +258,7 @@ def parse_callback(
     try:
         value = load_json(subscriber, "subscriber")
     except InputError as exc:
-        raise invalid_input(str(exc), "subscriber") from None
+        raise from_input_error(exc) from None
     members = ("successUri", "failedUri", "inProgressUri")
     if (
         not isinstance(value, dict)

@@ -144,7 +144,7 @@ def parse_options(data: bytes) -> dict[str, Any]:
     try:
         value = load_json(text, "options")
     except InputError as exc:
-        raise invalid_input(str(exc), "options") from None
+        raise from_input_error(exc) from None
     if not isinstance(value, dict):
         raise invalid_input("options must be a JSON object, e.g. {\"bins\": 32}", "options")
     try:
