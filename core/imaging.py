@@ -103,6 +103,33 @@ def file_bands(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     return bands, (~invalid if invalid is not None and invalid.any() else None)
 
 
+def valid_pixels(picture: np.ndarray) -> np.ndarray | None:
+    """Where a picture holds data: False where a BGRA picture is fully transparent (alpha 0,
+    which is also how :func:`matching_image` marks a raster's invalid pixels); None when every
+    pixel is valid."""
+    if picture.ndim != 3 or picture.shape[2] != 4:
+        return None
+    valid = picture[:, :, 3] != 0
+    return None if valid.all() else valid
+
+
+def _filled_transparent(picture: np.ndarray, field: str) -> np.ndarray:
+    """A BGRA picture whose colour under alpha 0 is :func:`fill_invalid`'s smooth extension of
+    the rest, as a raster's invalid pixels are: what a transparent area happens to hold (black,
+    noise, a stale copy of the scene) would otherwise be matched and scored like the image."""
+    valid = valid_pixels(picture)
+    if valid is None:
+        return picture
+    if not valid.any():
+        raise InputError(f"{field} has no valid pixel (alpha is 0 everywhere)", field)
+    out = picture.copy()
+    top = max_value(picture)
+    for c in range(3):
+        filled = fill_invalid(picture[:, :, c].astype(np.float32), valid)
+        out[:, :, c] = np.clip(np.round(filled), 0, top)
+    return out
+
+
 def check_raster(image: np.ndarray, field: str) -> None:
     """Raise :class:`InputError` unless ``image`` is a picture or a raster (module docstring)."""
     if not isinstance(image, np.ndarray) or image.ndim not in (2, 3):
@@ -120,8 +147,10 @@ def matching_image(image: np.ndarray, band: str = LUMINANCE, field: str = "image
     """The picture matching and scoring use, from a picture or a raster.
 
     * A picture with ``band="luminance"`` is used as it is (matching and scoring take its
-      luminance, the registered image keeps its colour).
-    * A picture with a band number gives that band (1 = red of a colour picture), same dtype.
+      luminance, the registered image keeps its colour), except under alpha 0: a BGRA
+      picture's fully transparent pixels are invalid, filled as a raster's are (below).
+    * A picture with a band number gives that band (1 = red of a colour picture), same dtype
+      (as BGRA, the band in B, G and R, when the picture has transparent pixels).
     * A raster gives an 8-bit grey picture: the chosen band, or with ``"luminance"`` the mean
       of all its bands after each is rescaled (so that no band dominates by its units); the
       rescale maps the 0.5 and 99.5 percentiles of the valid samples to 0 and 255
@@ -163,9 +192,14 @@ def matching_picture(image: np.ndarray, band: str = LUMINANCE, field: str = "ima
             f"option band is {number} but {field} has {count} band(s)", "options.band"
         )
     if is_picture(image):
+        image = _filled_transparent(image, field)
         if number is None or image.ndim == 2:
             return image, None
-        return np.ascontiguousarray(image[:, :, PICTURE_BAND[count][number - 1]]), None
+        chosen = np.ascontiguousarray(image[:, :, PICTURE_BAND[count][number - 1]])
+        valid = valid_pixels(image)
+        if valid is None or number == 4:
+            return chosen, None
+        return np.dstack([chosen, chosen, chosen, image[:, :, 3]]), None
     bands, valid = file_bands(image)
     if valid is not None and not valid.any():
         raise InputError(f"{field} has no valid pixel (all nodata or masked)", field)

@@ -26,7 +26,7 @@ from pwlreg.core.correct import (
 )
 from pwlreg.core.errors import InputError, UnreliableResultError
 from pwlreg.core.extent import extrapolations, frame_vertices
-from pwlreg.core.imaging import matching_image, to_gray8
+from pwlreg.core.imaging import matching_image, to_gray8, valid_pixels
 from pwlreg.core.matching import ConjugatePoints, find_conjugate_points
 from pwlreg.core.mesh import Mesh
 from pwlreg.core.moves import MOVES, Search, inserted_mask, insertions
@@ -39,7 +39,15 @@ from pwlreg.core.optimizers import (
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.quality import SCORING_BINS, SCORING_SIDE, Quality, assess
 from pwlreg.core.raster import quantize
-from pwlreg.core.refine import guide, levels, sharpen_vertices
+from pwlreg.core.refine import (
+    Guide,
+    Insertion,
+    clearance,
+    guide,
+    levels,
+    on_the_data,
+    sharpen_vertices,
+)
 from pwlreg.core.similarity import (
     prepare_images,
     reduced,
@@ -183,6 +191,18 @@ def in_hull(points: np.ndarray, query: np.ndarray) -> np.ndarray:
     return (query @ facets[:, :2].T + facets[:, 2] <= 1e-9).all(axis=1)
 
 
+def _on_the_data(found: Insertion, mesh: Guide,
+                 clearances: tuple[np.ndarray | None, np.ndarray | None]) -> Insertion:
+    """``found`` without the pairs :func:`core.refine.on_the_data` drops (counted as ``near
+    invalid pixels``)."""
+    keep = on_the_data(mesh, found.reference, found.moving, clearances)
+    if keep.all():
+        return found
+    counts = {**found.counts, "inserted": int(keep.sum()),
+              "near invalid pixels": int(np.count_nonzero(~keep))}
+    return Insertion(found.reference[keep], found.moving[keep], counts)
+
+
 def parse_options(options: RegistrationOptions | Mapping[str, Any] | None) -> RegistrationOptions:
     """Options from a model, a mapping or ``None`` (defaults); ``InputError`` if invalid."""
     if options is None:
@@ -303,6 +323,7 @@ def register(
     mesh, tri_report = build(ref_meas, mov_meas, origin)
     if made is not None:
         grey = made.result()
+        clearances = (clearance(valid_pixels(reference)), clearance(valid_pixels(moving)))
         insertion = {"inserted": 0}
         matched = len(conjugate.reference)
         by_source = dict.fromkeys((name for name, _ in insertions()), 0)
@@ -332,6 +353,8 @@ def register(
                 found = move.find(current, given)
                 if found is None:
                     continue
+                if any(c is not None for c in clearances):
+                    found = _on_the_data(found, current, clearances)
                 searched.add(name)
                 by_source[name] += len(found.reference)
                 _add_counts(insertion, name, found.counts)

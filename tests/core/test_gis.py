@@ -122,6 +122,27 @@ def test_matching_image_rescales_rasters_and_picks_bands():
     assert err.value.field == "options.band" and "3 band" in str(err.value)
 
 
+def test_what_a_transparent_area_holds_does_not_reach_matching_or_scoring():
+    rng = np.random.default_rng(3)
+    colour = rng.integers(0, 65536, (40, 50, 3), dtype=np.uint16)
+    alpha = np.full((40, 50), 65535, np.uint16)
+    alpha[5:25, 10:30] = 0
+    one = np.dstack([colour, alpha])
+    other = one.copy()
+    other[5:25, 10:30, :3] = rng.integers(0, 65536, (20, 20, 3), dtype=np.uint16)
+    seen = matching_image(one)
+    assert seen.shape == one.shape and seen.dtype == np.uint16
+    np.testing.assert_array_equal(seen, matching_image(other))
+    np.testing.assert_array_equal(seen[~(alpha == 0)], one[~(alpha == 0)])
+    band = matching_image(one, "1")
+    assert band.shape == (40, 50, 4) and (band[:, :, 3] == alpha).all()
+    np.testing.assert_array_equal(band[:, :, 0], matching_image(other, "1")[:, :, 0])
+    opaque = np.dstack([colour, np.full((40, 50), 1, np.uint16)])
+    assert matching_image(opaque) is opaque
+    with pytest.raises(InputError, match="alpha is 0 everywhere"):
+        matching_image(np.dstack([colour, np.zeros((40, 50), np.uint16)]), field="moving")
+
+
 def test_invalid_pixels_get_no_edge_and_a_transparent_alpha():
     data = scene(120, 160, 1, np.uint16)[0]
     invalid = np.zeros(data.shape, bool)
