@@ -61,24 +61,81 @@ class ScoringImages:
     moving_bin_scale: float
 
 
-def level_range(gray: np.ndarray, tail: float = 5e-4) -> tuple[int, int]:
-    """Grey levels ``(lo, hi)`` spanned by an image, ignoring a ``tail`` fraction at each end.
+def level_range(gray: np.ndarray, tail: float = 5e-4) -> tuple[np.ndarray, int, int]:
+    """Grey levels ``(lo, hi)`` spanned by an image, ignoring a ``tail`` fraction at each end
+    and the levels apart from the scene's (:func:`_main_levels`), and the image with those
+    clipped to the scene's levels.
 
     The bins of the joint histogram cover this range rather than the whole dtype: 12-bit data
     stored in 16 bits, or a dark 8-bit photo, would otherwise fall into one or two bins. A
     full-range 8-bit image (with at least 0.05 % of its pixels at each end) keeps the paper's
     bins over 0..255.
+
+    Returns
+    -------
+    gray : ndarray
+        ``gray`` itself, or a copy with its levels apart from the scene's clipped to the
+        scene's first or last level, so that no reduced level (:func:`reduced`) spreads them
+        over the levels between.
+    lo, hi : int
     """
     if gray.dtype in (np.uint8, np.uint16):
         counts = np.zeros(max_value(gray) + 1, dtype=np.int64)
         kernels.level_counts(gray.ravel(), counts)  # np.bincount's counts, 4 x faster
     else:
         counts = np.bincount(gray.ravel(), minlength=max_value(gray) + 1)
+    first, last = _main_levels(counts)
+    below, above = int(counts[:first].sum()), int(counts[last + 1:].sum())
+    if (below or above) and _isolated((gray < first) | (gray > last)):
+        gray = np.clip(gray, first, last)
+        counts = counts.copy()
+        counts[first] += below
+        counts[last] += above
+        counts[:first] = 0
+        counts[last + 1:] = 0
     cdf = np.cumsum(counts)
     total = cdf[-1]
     lo = int(np.searchsorted(cdf, tail * total, side="right"))
     hi = int(np.searchsorted(cdf, (1.0 - tail) * total, side="left"))
-    return lo, max(hi, lo)
+    return gray, lo, max(hi, lo)
+
+
+def _isolated(mask: np.ndarray) -> bool:
+    """Whether the pixels of ``mask`` stand mostly alone: on average less than one other of
+    them among their 8 neighbours (hot or dead pixels; the lines of a drawing have two)."""
+    around = cv2.boxFilter(mask.astype(np.uint8), cv2.CV_16U, (3, 3), normalize=False,
+                           borderType=cv2.BORDER_CONSTANT)
+    return float(np.mean(around[mask])) < 2.0
+
+
+GAP_IQRS = 4
+"""An empty run of grey levels longer than this many interquartile ranges (and than
+:data:`MIN_GAP` levels) parts the levels in use into groups (:func:`_main_levels`)."""
+MIN_GAP = 32
+
+
+def _main_levels(counts: np.ndarray) -> tuple[int, int]:
+    """First and last grey level of the group of levels, parted from the others by no empty
+    run longer than the gap (:data:`GAP_IQRS`, :data:`MIN_GAP`), that holds the median.
+
+    Hot or dead pixels, and a fill value that marks no data without being declared, sit apart
+    from the scene's levels: counted in the range, they stretched it over the empty levels
+    between (16-bit data in 1000-1400 with 0.3 % of its pixels at 65535 fell into one bin of
+    the joint histogram, and the verdict called a 0.5 px result unreliable). They fall into
+    the end bins instead, when they stand alone (:func:`_isolated`; a drawing's lines, apart
+    from its paper by as wide a gap, keep their levels). A photograph's levels have no such
+    gap: its range is unchanged.
+    """
+    used = np.flatnonzero(counts)
+    cdf = np.cumsum(counts[used])
+    q1, median, q3 = (used[np.searchsorted(cdf, q * cdf[-1], side="left")]
+                      for q in (0.25, 0.5, 0.75))
+    gap = max(GAP_IQRS * (q3 - q1), MIN_GAP)
+    parted = np.flatnonzero(np.diff(used) > gap + 1)  # last used level of each group but one
+    starts = np.concatenate([[0], parted + 1])
+    ends = np.concatenate([parted, [len(used) - 1]])
+    group = np.searchsorted(used[ends], median, side="left")
+    return int(used[starts[group]]), int(used[ends[group]])
 
 
 def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> ScoringImages:
@@ -89,10 +146,8 @@ def prepare_images(reference: np.ndarray, moving: np.ndarray, bins: int) -> Scor
     are binned the same way with the moving image's range. Nothing larger than one or two bytes
     per pixel is allocated (32-megapixel pairs stay well under 1 GB).
     """
-    ref = np.ascontiguousarray(to_gray(reference))
-    mov = np.ascontiguousarray(to_gray(moving))
-    r_lo, r_hi = level_range(ref)
-    m_lo, m_hi = level_range(mov)
+    ref, r_lo, r_hi = level_range(np.ascontiguousarray(to_gray(reference)))
+    mov, m_lo, m_hi = level_range(np.ascontiguousarray(to_gray(moving)))
     levels = np.arange(max_value(ref) + 1, dtype=np.int64)
     lut = np.clip((levels - r_lo) * bins // (r_hi - r_lo + 1), 0, bins - 1).astype(
         np.uint8 if bins <= 256 else np.uint16
