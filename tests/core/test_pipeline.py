@@ -222,3 +222,17 @@ def test_no_pair_is_inserted_along_the_edge_of_the_data():
     inserted = result.inserted
     assert inserted.sum() > 20
     assert error[inserted].max() < 1.0, error[inserted].max()
+
+
+@pytest.mark.parametrize("shape", [(200, 1600), (1600, 200)])
+def test_a_strip_is_judged_on_a_level_wide_enough(shape):
+    # Halved until its longer side was 400 px, a 1600 x 200 strip left 50 px across: too few
+    # of its triangles held the pixels to be judged, and an exact result was unreliable.
+    ref = texture(shape, 10, sigma=2.0)
+    h, w = shape
+    moving = cv2.warpAffine(ref, np.float32([[1, 0, 3.2], [0, 1, -1.7]]), (w, h),
+                            borderMode=cv2.BORDER_REFLECT)
+    result = register(ref, moving, options={"extent": "hull"})
+    assert result.quality.verdict == "good", result.quality.reasons
+    error = np.hypot(*(result.moving_vertices - result.reference_vertices - (3.2, -1.7)).T)
+    assert np.median(error) < 0.1
