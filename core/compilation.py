@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import inspect
 import logging
 import sys
 from collections.abc import Callable
@@ -42,11 +43,17 @@ def cache_directory() -> Path | None:
 
 
 @functools.cache
-def cache_key() -> str:
-    """What the cached kernels depend on: their sources, numba, Python and the CPU."""
+def cache_key(compile_all: Callable[[], None] | None = None) -> str:
+    """What the cached kernels depend on: their sources, the types ``compile_all`` compiles
+    them for (its code), numba, Python and the CPU."""
     digest = hashlib.sha256()
     for module in (kernels, tiled):
         digest.update(Path(module.__file__).read_bytes())
+    if compile_all is not None:
+        try:
+            digest.update(inspect.getsource(compile_all).encode())
+        except (OSError, TypeError):  # no source (defined in ``python -c``): its name
+            digest.update(getattr(compile_all, "__qualname__", "").encode())
     cpu = numba.core.config.CPU_NAME or llvm.get_host_cpu_name()
     digest.update(f"{numba.__version__}|{sys.version_info[:2]}|{cpu}".encode())
     return digest.hexdigest()[:16]
@@ -76,7 +83,7 @@ def prepare(compile_all: Callable[[], None], *, load: bool = False,
         if load:
             compile_all()
         return load
-    marker = directory / f"pwlreg-kernels-{cache_key()}.ready"
+    marker = directory / f"pwlreg-kernels-{cache_key(compile_all)}.ready"
     if marker.exists():
         if load:
             compile_all()

@@ -192,7 +192,9 @@ def matching_picture(image: np.ndarray, band: str = LUMINANCE, field: str = "ima
             f"option band is {number} but {field} has {count} band(s)", "options.band"
         )
     if is_picture(image):
-        image = _filled_transparent(image, field)
+        # numba compiles its kernels anew for read-only arrays (np.frombuffer, memory maps),
+        # outside the warm-up and its lock (core.compilation).
+        image = _filled_transparent(image if image.flags.writeable else image.copy(), field)
         if number is None or image.ndim == 2:
             return image, None
         chosen = np.ascontiguousarray(image[:, :, PICTURE_BAND[count][number - 1]])

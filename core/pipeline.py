@@ -534,6 +534,9 @@ def _compile_kernels() -> None:
                               np.roll(texture, 9, axis=1)[:, 128:]], axis=1)
     for dtype, scale in ((np.uint8, 1), (np.uint16, 257)):
         result = register(texture.astype(dtype) * scale, shifted.astype(dtype) * scale)
+    # An 8-bit image against a 16-bit one, both ways (the joint histograms take both types).
+    register(texture, shifted.astype(np.uint16) * 257, options={"extent": "hull"})
+    register(texture.astype(np.uint16) * 257, shifted, options={"extent": "hull"})
     # The tiled warp of large rasters.
     for _ in warp_tiles(ArrayBands(shifted), result.reference_vertices, result.moving_vertices,
                         result.final_triangles, texture.shape, tile=64):

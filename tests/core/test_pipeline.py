@@ -126,6 +126,36 @@ def test_warm_up_compiles_the_automatic_paths_kernels() -> None:
     assert int(frozen) > 10_000
 
 
+def test_after_the_warm_up_no_input_type_compiles_a_kernel() -> None:
+    # A kernel compiled at a job's first use is written into numba's cache outside the
+    # warm-up's lock (core.compilation): an 8-bit image against a 16-bit one compiled the
+    # joint histograms, a read-only array (np.frombuffer) three kernels.
+    code = (
+        "import numpy as np\n"
+        "from numba.core.registry import CPUDispatcher\n"
+        "from pwlreg.core import kernels, tiled\n"
+        "from pwlreg.core.pipeline import register, warm_up\n"
+        "from tests.core.synthetic import texture\n"
+        "warm_up()\n"
+        "def signatures():\n"
+        "    return {(m.__name__, n): len(f.signatures) for m in (kernels, tiled)\n"
+        "            for n, f in vars(m).items() if isinstance(f, CPUDispatcher)}\n"
+        "before = signatures()\n"
+        "ref = texture((200, 260), 3)\n"
+        "mov = np.roll(ref, (2, 3), axis=(0, 1))\n"
+        "frozen = np.frombuffer(mov.tobytes(), np.uint8).reshape(mov.shape)\n"
+        "for r, m in ((ref, mov.astype(np.uint16) * 257), (ref.astype(np.uint16) * 257, mov),\n"
+        "             (ref, frozen)):\n"
+        "    register(r, m)\n"
+        "after = signatures()\n"
+        "print(' '.join(f'{k[1]}' for k in after if after[k] != before.get(k)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=600, check=True, cwd=os.path.dirname(os.path.dirname(
+                             os.path.dirname(os.path.abspath(__file__)))))
+    assert out.stdout.strip() == "", f"compiled after the warm-up: {out.stdout}"
+
+
 def test_threaded_kernels_wait_passively_unless_told_otherwise() -> None:
     # OpenMP reads the policy when numba starts its threads, after the kernels' import.
     code = (
