@@ -47,10 +47,28 @@ def test_concurrent_processes_compile_once_and_never_at_the_same_time(tmp_path: 
 
 def test_a_ready_cache_is_not_compiled_again(tmp_path: Path) -> None:
     calls: list[int] = []
-    assert compilation.prepare(lambda: calls.append(1), directory=tmp_path) is True
-    assert compilation.prepare(lambda: calls.append(1), directory=tmp_path) is False
-    assert compilation.prepare(lambda: calls.append(1), load=True, directory=tmp_path) is True
+
+    def compile_all() -> None:
+        calls.append(1)
+
+    assert compilation.prepare(compile_all, directory=tmp_path) is True
+    assert compilation.prepare(compile_all, directory=tmp_path) is False
+    assert compilation.prepare(compile_all, load=True, directory=tmp_path) is True
     assert calls == [1, 1]
+
+
+def test_another_warm_up_is_compiled_again(tmp_path: Path) -> None:
+    # The marker follows the warm-up's code: one that compiles more types (an 8-bit image
+    # against a 16-bit one) does not find the cache ready.
+    def first() -> None:
+        pass
+
+    def second() -> None:
+        pass
+
+    assert compilation.prepare(first, directory=tmp_path) is True
+    assert compilation.prepare(second, directory=tmp_path) is True
+    assert compilation.prepare(second, directory=tmp_path) is False
 
 
 def test_a_failed_compilation_leaves_the_cache_not_ready(tmp_path: Path) -> None:
