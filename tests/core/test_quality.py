@@ -13,6 +13,7 @@ from pwlreg.core.quality import (
     RESIDUAL_FLOW_SIDE,
     flow_texture,
     peak_scores,
+    reference_tones,
     residual_share,
 )
 from pwlreg.core.similarity import prepare_images
@@ -252,3 +253,27 @@ def test_a_right_registration_over_a_noisy_blank_backdrop_is_good():
     assert r.quality.figures["extrapolated_coverage"] > 0.2
     assert r.quality.figures["extrapolated_off_share"] < 0.02
     assert r.quality.verdict == "good", r.quality.reasons
+
+
+def test_the_residual_flow_reads_the_registered_image_in_the_references_tones():
+    ref = texture((240, 320), 12, sigma=2.0)
+    everywhere = np.ones(ref.shape, bool)
+    darker = np.clip(255 * (ref / 255.0) ** 2.0, 0, 255).astype(np.uint8)
+    toned = reference_tones(darker, ref, everywhere)
+    assert np.abs(toned.astype(int) - ref).mean() < 1.0 < np.abs(darker.astype(int) - ref).mean()
+    # A tone that changes across the image is no function of the grey level: left as it is.
+    ramp = np.linspace(0.15, 1.0, 320)[None, :]
+    lit = np.clip(ref * ramp, 0, 255).astype(np.uint8)
+    assert reference_tones(lit, np.clip(ref * ramp[:, ::-1], 0, 255).astype(np.uint8),
+                           everywhere) is lit
+
+
+def test_a_gamma_between_the_images_is_no_residual_error():
+    # Under a gamma of 2 the flow, which assumes constant brightness, found 12-16 % of right
+    # registrations off (photographs, 0.12 px from the truth): doubtful.
+    ref = cv2.addWeighted(texture((480, 640), 13, sigma=8.0), 0.6,
+                          texture((480, 640), 14, sigma=32.0), 0.4, 0)
+    moving = np.roll(ref, (3, -2), axis=(0, 1))
+    moving = np.clip(255 * (moving / 255.0) ** 2.5, 0, 255).astype(np.uint8)
+    result = register(ref, moving, options={"extent": "hull"})
+    assert result.quality.figures["residual_share"] < 0.02  # 0.095 read in the moving's tones
