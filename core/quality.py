@@ -345,7 +345,6 @@ def reference_tones(registered: np.ndarray, reference: np.ndarray,
     return cv2.LUT(registered, np.clip(np.rint(lut), 0, 255).astype(np.uint8))
 
 
-
 def moving_coverage(shape: tuple[int, ...], triangles: np.ndarray) -> float:
     """Share of a moving image of ``shape`` (height, width) inside ``triangles`` ``(T, 3, 2)``
     (its pixels, e.g. the measured part of a mesh), by the meshes' own fill rule."""

@@ -118,13 +118,12 @@ def _main_levels(counts: np.ndarray) -> tuple[int, int]:
     """First and last grey level of the group of levels, parted from the others by no empty
     run longer than the gap (:data:`GAP_IQRS`, :data:`MIN_GAP`), that holds the median.
 
-    Hot or dead pixels, and a fill value that marks no data without being declared, sit apart
-    from the scene's levels: counted in the range, they stretched it over the empty levels
-    between (16-bit data in 1000-1400 with 0.3 % of its pixels at 65535 fell into one bin of
-    the joint histogram, and the verdict called a 0.5 px result unreliable). They fall into
-    the end bins instead, when they stand alone (:func:`_isolated`; a drawing's lines, apart
-    from its paper by as wide a gap, keep their levels). A photograph's levels have no such
-    gap: its range is unchanged.
+    Hot or dead pixels sit apart from the scene's levels: counted in the range, they stretched
+    it over the empty levels between (16-bit data in 1000-1400 with 0.3 % of its pixels at
+    65535 fell into one bin of the joint histogram, and the verdict called a 0.5 px result
+    unreliable). They fall into the end bins instead, when they stand alone
+    (:func:`_isolated`; a drawing's lines, apart from its paper by as wide a gap, keep their
+    levels). A photograph's levels have no such gap: its range is unchanged.
     """
     used = np.flatnonzero(counts)
     cdf = np.cumsum(counts[used])
