@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pwlreg.core.epipolar import EpipolarModel, pixel_scaling
-from pwlreg.core.imaging import PictureRecipe, check_raster, matching_picture
+from pwlreg.core.imaging import LUMINANCE, PictureRecipe, check_raster, matching_picture
 from pwlreg.core.matching import ConjugatePoints
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.pipeline import Progress, RegistrationResult, parse_options, warm_up
@@ -65,6 +65,9 @@ class ScaledResult(RegistrationResult):
         the client's points.
     paths : (path or None, path or None)
         The files of images read window by window (the writers read them again).
+    moving_image : ndarray or None
+        The moving image at full resolution when it was in memory (an array, or a file other
+        than a TIFF, decoded whole): the writers resample it.
     """
 
     reference_level: np.ndarray | None = None
@@ -73,6 +76,7 @@ class ScaledResult(RegistrationResult):
     scales: np.ndarray | None = None
     refined: dict[str, int] | None = None
     paths: tuple[Path | None, Path | None] = (None, None)
+    moving_image: np.ndarray | None = None
 
 
 def level_factor(height: int, width: int, level_pixels: int = LEVEL_PIXELS) -> int:
@@ -146,8 +150,10 @@ def register(
             level_points = (down(pts[0], scale[0]), down(pts[1], scale[1]))
         else:
             level_points = points  # the pipeline says what is wrong with them
+    # The level's pictures are the chosen band already.
     level_opts = opts.model_copy(
-        update={"min_triangle_area": opts.min_triangle_area / float(np.prod(scale[0]))}
+        update={"min_triangle_area": opts.min_triangle_area / float(np.prod(scale[0])),
+                "band": LUMINANCE}
     )
     result = register_level(levels[0], levels[1], level_points, level_opts, progress)
 
@@ -180,6 +186,7 @@ def register(
         reference_level=levels[0], moving_level=levels[1], moving_recipe=recipes[1],
         scales=scale, refined=refined,
         paths=tuple(getattr(s, "path", None) for s in sources),
+        moving_image=moving if sources[1] is None else None,
     )
 
 
@@ -198,8 +205,10 @@ def _restore(ref_v: np.ndarray, mov_v: np.ndarray, points: list[np.ndarray], sca
     """The client's own coordinates for the vertices that are its points (the level's
     quantization moved them by up to ``scale / 512`` px)."""
     ref_v, mov_v = ref_v.copy(), mov_v.copy()
-    distance, index = cKDTree(points[0]).query(ref_v)
-    near = distance <= float(scale[0].max()) / 256
+    # Nearest in both images: of two client pairs with one reference point (the pipeline
+    # keeps the first), the one the vertex stands for.
+    distance, index = cKDTree(np.hstack(points)).query(np.hstack([ref_v, mov_v]))
+    near = distance <= float(scale.max()) / 256 * np.sqrt(2)
     ref_v[near] = points[0][index[near]]
     mov_v[near] = points[1][index[near]]
     return ref_v, mov_v

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from pwlreg.core.imaging import file_bands
+from pwlreg.core.imaging import file_bands, is_picture, valid_pixels
 from pwlreg.core.kernels import _load_triangle, _row_range, row_span, to_fixed
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.warp import outer_edge_flags
@@ -83,12 +83,16 @@ class ArrayBands:
     def __init__(self, image: np.ndarray) -> None:
         self._image = image
         self._bands, self._valid = file_bands(image)
+        if self._valid is None and is_picture(image):
+            self._valid = valid_pixels(image)  # alpha 0
         self.height, self.width, self.count = self._bands.shape
         self.dtype = self._bands.dtype
 
     def read(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray | None]:
         valid = None if self._valid is None else self._valid[y0:y1, x0:x1]
-        return self._bands[y0:y1, x0:x1], valid
+        # None for a window of valid pixels only, as RasterFile.read says it: a mask there
+        # kept every pair of the window from its refinement at full resolution.
+        return self._bands[y0:y1, x0:x1], None if valid is None or valid.all() else valid
 
     def level(self, factor: int) -> np.ndarray:
         h, w = self.height // factor * factor, self.width // factor * factor

@@ -433,10 +433,11 @@ def _write_tiles(result: RegistrationResult, source: BandSource, geo: Georeferen
 def moving_source(result: RegistrationResult, sources: Sources
                   ) -> contextlib.AbstractContextManager[BandSource]:
     """The moving image at full resolution, as a :class:`~pwlreg.core.tiled.BandSource`: the
-    decoded raster or picture in ``sources`` when it is at full size, else its file (a TIFF
-    read by windows, another format decoded)."""
+    decoded raster or picture in ``sources`` when it is at full size, or the one a result
+    registered on levels kept (``moving_image``), else its file (a TIFF read by windows,
+    another format decoded)."""
     width, height = result.moving_size
-    for image in (sources.moving_raster, sources.moving):
+    for image in (sources.moving_raster, sources.moving, getattr(result, "moving_image", None)):
         if image is not None and image.shape[:2] == (height, width):
             return contextlib.nullcontext(ArrayBands(image))
     path = sources.moving_path

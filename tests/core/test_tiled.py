@@ -195,6 +195,54 @@ def test_levels_keep_the_clients_points_exactly():
     assert result.options.min_triangle_area == 25.0  # the client's value, not the level's
 
 
+def test_levels_keep_the_pair_the_pipeline_kept_of_two_on_one_point():
+    # Of two client pairs on one reference point the pipeline keeps the first; the vertex
+    # took the moving position of either (the second, 20 px off, in the probe).
+    reference, moving, forward = _similar_pair()
+    rng = np.random.default_rng(3)
+    ref_pts = rng.uniform([30, 30], [1100, 800], size=(60, 2))
+    mov_pts = ref_pts @ forward[:, :2].T + forward[:, 2]
+    given = (np.vstack([ref_pts, ref_pts[:1]]), np.vstack([mov_pts, mov_pts[:1] + [20, 0]]))
+    result = register(reference, moving, given, NO_FILTER, level_pixels=1 << 17)
+    assert isinstance(result, ScaledResult) and result.points.rejected["duplicate"] == 1
+    first = np.abs(result.reference_vertices - ref_pts[0]).max(axis=1).argmin()
+    np.testing.assert_allclose(result.moving_vertices[first], mov_pts[0], atol=1 / 512)
+
+
+def test_levels_take_the_band_option_once():
+    reference, moving, _ = _similar_pair()
+    colour = [np.dstack([image // 2, image, image // 3]) for image in (reference, moving)]
+    result = register(*colour, None, {"band": "2"}, level_pixels=1 << 17)
+    assert isinstance(result, ScaledResult) and result.quality.verdict == "good"
+    assert result.options.band == "2"
+
+
+def test_a_result_on_levels_writes_without_the_sources(tmp_path):
+    # The documented call, write_outputs(result, dir), had no moving image to resample for a
+    # result registered from arrays (or decoded files) on levels.
+    reference, moving, _ = _similar_pair()
+    result = register(reference, moving, None, {}, level_pixels=1 << 17)
+    paths = write_outputs(result, tmp_path)
+    registered = read_image(paths["registered"])
+    assert registered.shape[:2] == reference.shape[:2]
+
+
+def test_array_windows_say_where_data_is_missing_and_only_there():
+    # A window of valid pixels only reads as such (None), as a file's does: a mask there kept
+    # the whole image from its refinement at full resolution.
+    data = np.arange(40 * 50, dtype=np.float32).reshape(40, 50)
+    mask = np.zeros(data.shape, bool)
+    mask[:10, :10] = True
+    source = ArrayBands(np.ma.MaskedArray(data, mask=mask))
+    assert source.read(20, 20, 40, 40)[1] is None
+    assert not source.read(0, 0, 20, 20)[1].all()
+    # A picture's alpha 0 is missing data too.
+    picture = np.dstack([np.full((40, 50), 9, np.uint8)] * 3 + [np.where(mask, 0, 255)
+                                                                .astype(np.uint8)])
+    np.testing.assert_array_equal(ArrayBands(picture).read(0, 0, 20, 20)[1], ~mask[:20, :20])
+    assert ArrayBands(picture).read(20, 20, 40, 40)[1] is None
+
+
 def test_levels_refine_automatic_pairs_at_full_resolution():
     reference, moving, forward = _similar_pair()
     result = register(reference, moving, None, {}, level_pixels=1 << 17)
