@@ -9,6 +9,7 @@ import logging
 import math
 import re
 import shutil
+import threading
 import uuid
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -344,6 +345,10 @@ def _read_callback(
     return None if urls is None else {**urls, "base_url": base_url}
 
 
+_ADMISSION = threading.Lock()
+"""Held from the last queue check to the new job's row (:func:`_accept`)."""
+
+
 def _accept(
     services: Services,
     form: ReceivedForm,
@@ -375,16 +380,20 @@ def _accept(
     # never a row without its files.
     storage.commit_inputs(staging, job_id)
     try:
-        job, created = store.create(
-            job_id,
-            options,
-            has_points,
-            settings.max_attempts,
-            idempotency_key=key,
-            request_hash=fingerprint,
-            owner=client,
-            callback=callback,
-        )
+        # The last check and the row in one step: 30 submissions at once all passed the check
+        # above while their images were validated, and 29 jobs waited under a limit of 5.
+        with _ADMISSION:
+            check_queue(services, client)
+            job, created = store.create(
+                job_id,
+                options,
+                has_points,
+                settings.max_attempts,
+                idempotency_key=key,
+                request_hash=fingerprint,
+                owner=client,
+                callback=callback,
+            )
     except IdempotencyConflict as exc:
         storage.remove(job_id)
         raise idempotency_conflict(str(exc), exc.job.id) from None

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import sqlite3
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -185,6 +186,28 @@ def test_old_database_gets_the_owner_column(tmp_path: Path) -> None:
 
 
 # --- back-pressure ---------------------------------------------------------------------------
+
+
+def test_the_queue_limit_holds_for_submissions_at_once(start_server: Callable[..., Server],
+                                                        pair: Pair) -> None:
+    # All of 30 submissions at once passed the queue check while their images were
+    # validated: 29 jobs waited under a limit of 5.
+    server = start_server(PWLREG_WORKERS="1", PWLREG_RUNNER="tests.service.runners:slow_register",
+                          PWLREG_TEST_SLOW_SECONDS="30", PWLREG_MAX_QUEUED_JOBS="3")
+
+    def post(_: int) -> int:
+        with server.client() as client:
+            return submit(client, pair).status_code
+
+    with ThreadPoolExecutor(max_workers=30) as pool:
+        codes = list(pool.map(post, range(30)))
+    assert set(codes) == {201, 429}
+    with server.client() as client:
+        waiting = client.get("/v1/jobs", params={"status": "accepted", "limit": 100}).json()
+        listed = client.get("/v1/jobs", params={"limit": 100}).json()
+    assert waiting["numberMatched"] <= 3
+    # Every job answered 201 is kept (one of them may have started).
+    assert listed["numberMatched"] == codes.count(201) <= 4
 
 
 def test_full_queue_is_429_with_retry_after(start_server: Callable[..., Server],
