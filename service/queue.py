@@ -182,7 +182,8 @@ class LocalProcessQueue(JobQueue):
             max_workers=self.settings.workers,
             mp_context=self._context,
             initializer=init_process,
-            initargs=(self.settings, self._stop_event, logging.getLogger().getEffectiveLevel()),
+            initargs=(self.settings, self._stop_event, logging.getLogger().getEffectiveLevel(),
+                      True),
         )
         # Start the processes now (they import core), not when the first job arrives.
         for _ in range(self.settings.workers):

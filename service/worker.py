@@ -445,17 +445,22 @@ _PROCESS_CONTEXT: WorkerContext | None = None
 
 
 def init_process(
-    settings: Settings, stop_event: Any = None, log_level: int = logging.INFO
+    settings: Settings, stop_event: Any = None, log_level: int = logging.INFO,
+    ignore_terminate: bool = False,
 ) -> None:
     """Initializer of a worker process: build its context, follow the parent's lifetime.
 
     Ctrl-C in a terminal reaches the whole process group; the workers ignore it and let the
-    service stop them through ``stop_event``. A worker exits when its parent process dies, so
-    that a killed service leaves no orphan running jobs (their leases expire and the next start
-    requeues them).
+    service stop them through ``stop_event``. With ``ignore_terminate`` they ignore SIGTERM too
+    (the embedded pool): systemd's default stop (``KillMode=control-group``) and ``kill -TERM
+    -PGID`` signal the whole group, and a worker that died there cost its job an attempt. A
+    worker exits when its parent process dies, so that a killed service leaves no orphan
+    running jobs (their leases expire and the next start requeues them).
     """
     global _PROCESS_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if ignore_terminate:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     cv2.setNumThreads(settings.worker_threads)  # processes, not threads, share the cores
     kernels.set_threads(settings.worker_threads)
     configure_logging(log_level, settings.log_format)

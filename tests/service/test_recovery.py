@@ -8,6 +8,7 @@ real registration, so the server can be killed while the job is running.
 from __future__ import annotations
 
 import os
+import signal
 import sqlite3
 import time
 from collections.abc import Callable
@@ -80,6 +81,22 @@ def test_jobs_survive_a_killed_and_a_stopped_server(
         assert done["attempts"] == 1
         registered = client.get(f"/v1/jobs/{stopped_job}/registered.png")
         assert registered.status_code == 200 and registered.content[:4] == b"\x89PNG"
+
+
+def test_a_stop_signalled_to_every_process_gives_the_job_back(
+    start_server: Callable[..., Server], pair: Pair
+) -> None:
+    # systemd's default stop (KillMode=control-group) and kill -TERM -PGID signal the workers
+    # as well as the service: a worker that died there cost its job an attempt.
+    server = start_server(**ENV)
+    data_dir = server.data_dir
+    with server.client() as client:
+        job = submit(client, pair).json()["id"]
+        wait_for(client, job, lambda j: j["status"] == "running" and j["progress"] > 0)
+    for pid in server.children():
+        os.kill(pid, signal.SIGTERM)
+    server.stop()
+    assert _row(data_dir, job) == ("accepted", 0)
 
 
 def test_a_job_whose_worker_dies_does_not_take_its_neighbour_with_it(
