@@ -383,7 +383,8 @@ def _accept(
         # The last check and the row in one step: 30 submissions at once all passed the check
         # above while their images were validated, and 29 jobs waited under a limit of 5.
         with _ADMISSION:
-            check_queue(services, client)
+            if key is None or store.get_by_idempotency_key(key) is None:
+                check_queue(services, client)  # a replay is answered whatever the queue
             job, created = store.create(
                 job_id,
                 options,

@@ -210,6 +210,26 @@ def test_the_queue_limit_holds_for_submissions_at_once(start_server: Callable[..
     assert listed["numberMatched"] == codes.count(201) <= 4
 
 
+def test_one_key_sent_at_once_is_one_job_even_on_a_full_queue(
+        start_server: Callable[..., Server], pair: Pair) -> None:
+    # The first of them fills the queue; the others are its replays, answered whatever the
+    # queue, not refused.
+    server = start_server(PWLREG_WORKERS="1", PWLREG_RUNNER="tests.service.runners:slow_register",
+                          PWLREG_TEST_SLOW_SECONDS="30", PWLREG_MAX_QUEUED_JOBS="1")
+    with server.client() as client:
+        running = submit(client, pair).json()["id"]
+        wait_for(client, running, lambda j: j["status"] == "running")
+
+    def post(_: int) -> httpx.Response:
+        with server.client() as client:
+            return submit(client, pair, headers={"Idempotency-Key": "once"})
+
+    with ThreadPoolExecutor(max_workers=12) as pool:
+        answers = list(pool.map(post, range(12)))
+    assert [a.status_code for a in answers] == [201] * 12
+    assert len({a.json()["id"] for a in answers}) == 1
+
+
 def test_full_queue_is_429_with_retry_after(start_server: Callable[..., Server],
                                             pair: Pair) -> None:
     server = start_server(
