@@ -87,12 +87,13 @@ def file_bands(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
     bands : ndarray, shape (H, W, C)
         A view where possible (a picture's BGR(A) channels as R, G, B(, A)).
     valid : ndarray of bool, shape (H, W), or None
-        False where any band is masked or not finite; None when every pixel is valid.
+        False where any band is masked or not finite, or where a picture's alpha is 0
+        (:func:`valid_pixels`); None when every pixel is valid.
     """
     data = np.ma.getdata(image)
     bands = data if data.ndim == 3 else data[:, :, None]
     if is_picture(image):
-        return bands[:, :, list(PICTURE_BAND[bands.shape[2]])], None
+        return bands[:, :, list(PICTURE_BAND[bands.shape[2]])], valid_pixels(image)
     mask = np.ma.getmask(image)
     invalid = None
     if mask is not np.ma.nomask:

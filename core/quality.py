@@ -326,13 +326,13 @@ def reference_tones(registered: np.ndarray, reference: np.ndarray,
     recolouring), so that the residual flow, which assumes constant brightness, measures
     motion where the two images differ in tone. Levels seen nowhere follow their neighbours."""
     levels = registered[where].astype(np.intp)
+    values = reference[where].astype(np.float64)
     counts = np.bincount(levels, minlength=256).astype(np.float64)
-    sums = np.bincount(levels, weights=reference[where], minlength=256)
+    sums = np.bincount(levels, weights=values, minlength=256)
     seen = counts > 0
     if not seen.any():
         return registered
     means = sums[seen] / counts[seen]
-    values = reference[where].astype(np.float64)
     # Only where the grey level tells the reference's tone: a tone that changes across the
     # image (opposite gradients), or a registration that is off, leaves the means flat, and
     # mapping through them would erase the texture the flow follows.

@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 from numba import njit
 
-from pwlreg.core.imaging import file_bands, is_picture, valid_pixels
+from pwlreg.core.imaging import file_bands
 from pwlreg.core.kernels import _load_triangle, _row_range, row_span, to_fixed
 from pwlreg.core.raster import affine_maps
 from pwlreg.core.warp import outer_edge_flags
@@ -83,8 +83,6 @@ class ArrayBands:
     def __init__(self, image: np.ndarray) -> None:
         self._image = image
         self._bands, self._valid = file_bands(image)
-        if self._valid is None and is_picture(image):
-            self._valid = valid_pixels(image)  # alpha 0
         self.height, self.width, self.count = self._bands.shape
         self.dtype = self._bands.dtype
 
