@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.mesh import Edge, Mesh, edge_key
-from pwlreg.core.raster import first_occurrences, quantize, triangle_areas
+from pwlreg.core.raster import first_occurrences, orientation, quantize, triangle_areas
 
 
 @dataclass
@@ -137,6 +137,29 @@ def repair_patch_reversals(mesh: Mesh, max_actions: int | None = None) -> tuple[
     return actions, len(mesh.reversed_slots())
 
 
+#: Share of the triangles reversed in the moving image over which the map is a reflection: a
+#: mirror image reverses all of them, pairs at random (unrelated images) about half.
+MIRRORED_SHARE = 0.9
+
+
+def _refuse_a_mirror(mesh: Mesh) -> None:
+    """Refuse pairs that map most triangles reversed: a reflection, which no mesh can follow
+    (the repair would remove every triangle, and the message blamed the points)."""
+    if not mesh.n_triangles:
+        return
+    corners = [np.moveaxis(p[mesh.triangles], 1, 0) for p in (mesh.reference, mesh.moving)]
+    turned = orientation(*corners[0]) * orientation(*corners[1])
+    reversed_ = int(np.count_nonzero(turned < 0))
+    if reversed_ > MIRRORED_SHARE * mesh.n_triangles:
+        raise InputError(
+            f"{reversed_} of {mesh.n_triangles} triangles are reversed in the moving image: it "
+            "is a mirror image of the reference (flipped, or a raster whose rows or columns run "
+            "the other way), or the points of one image are given as (row, column); flip it or "
+            "swap the points' coordinates",
+            "moving",
+        )
+
+
 def initial_mesh(
     reference_points: np.ndarray,
     moving_points: np.ndarray,
@@ -180,6 +203,7 @@ def initial_mesh(
     )
     report.small_triangles_removed = int((~keep).sum())
     mesh = Mesh(ref, mov, tris[keep])
+    _refuse_a_mirror(mesh)
     report.repairs, report.unrepaired = repair_patch_reversals(mesh)
     if mesh.n_triangles == 0:
         raise InputError(

@@ -62,6 +62,19 @@ def test_collinear_and_too_few_points_are_clear_errors():
         initial_mesh(np.array([[0, 0], [1, 1]], float), np.array([[0, 0], [1, 1]], float), 0)
 
 
+@pytest.mark.parametrize("flip", [(-1, 1), (1, -1), "transpose"])
+def test_a_mirror_image_is_named_not_blamed_on_the_points(flip):
+    # A raster whose rows run the other way (a south-up grid), or points given as (row,
+    # column) in one image, reverse every triangle: the repair removed them all and the error
+    # asked for better points.
+    ref = np.random.default_rng(0).uniform(0, 500, (40, 2))
+    mov = ref[:, ::-1].copy() if flip == "transpose" else ref * flip + 600
+    with pytest.raises(InputError, match="triangles are reversed") as info:
+        initial_mesh(ref, mov, 0)
+    assert info.value.field == "moving"
+    assert "mirror image" in str(info.value)
+
+
 def test_reversal_on_boundary_removes_triangle():
     ref = np.array([[0, 0], [10, 0], [0, 10], [10, 10]], float)
     mov = ref.copy()
