@@ -84,7 +84,8 @@ def mesh_collection(result: RegistrationResult, sources: Sources) -> dict:
     0 or less no evidence; null without texture) and ``extrapolated`` (a corner is a border
     vertex whose moving position was extrapolated, not measured).
     """
-    to_out, members, key = _frame(georeference(sources.reference_path))
+    reference_geo = georeference(sources.reference_path)
+    to_out, members, key = _frame(reference_geo)
     ref = np.asarray(result.reference_vertices, np.float64).reshape(-1, 2)
     mov = np.asarray(result.moving_vertices, np.float64).reshape(-1, 2)
     tris = np.asarray(result.final_triangles, np.int64).reshape(-1, 3)
@@ -124,19 +125,21 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
     follow (``id`` from the number of kept pairs on). Properties: ``reference_px`` and
     ``moving_px`` (pixels of each image), ``moving_position`` (where the moving point is on
     the ground, in the same coordinates as the geometry, when the moving image is
-    georeferenced by a geotransform: the line from the geometry to it is the shift the
-    registration corrects), ``residual_px`` (distance to the robust epipolar geometry,
-    pixels; null when none judged the pair: the filter off or skipped, or the pair dropped
-    before it), ``kept`` (true or false), ``reason`` (null for a kept pair, else the cause:
-    ``thinned``, ``ambiguous``, ``disagreement``, ``low texture``, ``unverifiable``,
-    ``epipolar``, ``neighbours``, ``spread`` for automatic pairs; ``not finite``, ``outside
-    image``, ``duplicate``, ``epipolar`` for the client's) and ``status`` (``kept`` or
+    georeferenced by a geotransform, in a system that reprojects to WGS 84 or in the
+    reference's own: the line from the geometry to it is the shift the registration
+    corrects), ``residual_px`` (distance to the robust epipolar geometry, pixels; null when
+    none judged the pair: the filter off or skipped, or the pair dropped before it), ``kept``
+    (true or false), ``reason`` (null for a kept pair, else the cause: ``thinned``,
+    ``ambiguous``, ``disagreement``, ``low texture``, ``unverifiable``, ``epipolar``,
+    ``neighbours``, ``spread`` for automatic pairs; ``not finite``, ``outside image``,
+    ``duplicate``, ``epipolar``, ``neighbours`` for the client's) and ``status`` (``kept`` or
     ``dropped``). A coordinate the client gave as no finite number is null (and the geometry
     with it). The member ``dropped`` counts the drops by cause (as mesh.json's
     ``matching.rejected``, which also counts the matcher's own losses, listed nowhere: a
     failed track is not a pair), with ``source`` (``client``, ``lk``, ``sift``) and ``notes``.
     """
-    to_out, members, key = _frame(georeference(sources.reference_path))
+    reference_geo = georeference(sources.reference_path)
+    to_out, members, key = _frame(reference_geo)
     points = result.points
     kept = len(points.reference)
     dropped = points.dropped
@@ -149,10 +152,13 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
     coords = _mapped(to_out, ref)
     moving_geo = georeference(sources.moving_path)
     moving_coords = None
-    if moving_geo is not None and key == "lonlat" and len(mov):
+    if moving_geo is not None and len(mov):
         mov_frame = _frame(moving_geo)
-        if mov_frame[2] == key:
+        if key == "lonlat" and mov_frame[2] == key:
             moving_coords = _mapped(mov_frame[0], mov)
+        elif key == "map" and moving_geo.crs == reference_geo.crs:
+            # A system with no known way to WGS 84 (a site's local grid): both in it.
+            moving_coords = _mapped(moving_geo.to_map, mov)
     features = []
     for i in range(len(ref)):
         properties = {

@@ -212,6 +212,27 @@ def test_large_registered_tif_has_overviews(tmp_path):
         assert ds.overviews(1) == [2] and ds.block_shapes[0] == (512, 512)
 
 
+def test_moving_positions_in_a_local_grid_without_a_way_to_wgs84(tmp_path):
+    # A site's local grid has no transformation to WGS 84: the points stay in its coordinates,
+    # and the moving file's positions, in the same grid, were left out.
+    local = CRS.from_wkt('LOCAL_CS["plant grid",LOCAL_DATUM["site",0],UNIT["metre",1],'
+                         'AXIS["Easting",EAST],AXIS["Northing",NORTH]]')
+    pair = make_pair()
+    ref_path, mov_path = tmp_path / "reference.tif", tmp_path / "moving.tif"
+    ref_path.write_bytes(geotiff(pair.reference, crs=local))
+    mov_path.write_bytes(geotiff(pair.moving, crs=local))
+    reference, moving = read_image(ref_path), read_image(mov_path)
+    result = register(reference, moving, (pair.reference_points, pair.moving_points), NO_FILTER)
+    written = write_outputs(result, tmp_path / "out",
+                            sources=Sources(reference, moving, ref_path, mov_path))
+    ties = json.loads(written["tiepoints_geojson"].read_text())
+    assert "crs" in ties
+    for feature in ties["features"]:
+        mx, my = map_coords(np.array([feature["properties"]["moving_px"]]))[0]
+        np.testing.assert_allclose(feature["properties"]["moving_position"], (mx, my),
+                                   atol=1e-3)
+
+
 def test_geojson_lines_up_with_the_raster(tmp_path):
     pair = make_pair()
     result, written = _run(tmp_path, pair)
