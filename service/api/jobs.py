@@ -34,7 +34,6 @@ from pwlreg.service.auth import ClientDep
 from pwlreg.service.deps import Services, ServicesDep
 from pwlreg.service.logs import job_extra
 from pwlreg.service.problems import (
-    Problem,
     from_input_error,
     from_validation_error,
     idempotency_conflict,
@@ -686,14 +685,10 @@ def _result(services: Services, job_id: str, key: str, client: str | None) -> Fi
     if job.status != JobStatus.successful:
         raise result_not_ready(job.id, job.status.value)
     path = services.storage.result_path(job_id, key)
-    if path is None:
-        raise Problem(
-            404,
-            "result-missing",
-            "Result missing",
-            f"job {job_id} has no {key} result (not produced for this job, or no longer stored)",
-        )
     result = RESULTS[key]
+    if path is None:
+        raise not_found(f"job {job_id} has no {result.filename} result (not produced for this "
+                        "job, or no longer stored)")
     return FileResponse(
         path,
         media_type=result.media_type,

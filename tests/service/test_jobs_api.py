@@ -92,6 +92,13 @@ def test_job_from_upload_to_downloaded_results(server: Server, pair: Pair) -> No
             assert key in convergence, key
         assert set(convergence["initial"]) >= {"mi", "nmi"}
 
+        # A result this job has no reason to make (no georeferencing): a documented 404.
+        assert "registered.tif" not in results
+        missing = client.get(f"/v1/jobs/{job['id']}/registered.tif")
+        assert missing.status_code == 404
+        assert missing.json()["type"] == "urn:pwlreg:problem:not-found"
+        assert "registered.tif" in missing.json()["detail"]
+
 
 def test_points_as_csv_form_field_and_options_as_file_part(server: Server, pair: Pair) -> None:
     files = {
