@@ -197,7 +197,8 @@ class RegistrationOptions(BaseModel):
     epipolar_filter: bool = Field(
         True,
         description="Reject point pairs inconsistent with the epipolar geometry (also "
-        "applied to points sent by the client).",
+        "applied to points sent by the client, with a check of each client pair against the "
+        "local affine map of its neighbours for gross errors, over 20 px).",
     )
     epipolar_threshold: float = Field(
         1.5,

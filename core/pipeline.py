@@ -414,13 +414,16 @@ def register(
         border = tri_report.extrapolated
         moving_v = mesh.moving.copy()
         moving_v[corrections.vertices] = corrections.moving
-        if conjugate.epipolar is not None and border.any():
+        # Not along a plane's lines, which hold on the plane only: the insertion's pairs must
+        # lie on it (core.epipolar.EpipolarModel.inliers), the border search has no such test.
+        lines = conjugate.epipolar
+        if lines is not None and lines.plane is None and border.any():
             # On the level the verdict and the border's first choice look at.
             found = border_search(
                 level, mesh.reference, moving_v, mesh.triangles, border,
                 extrapolations(mesh.reference[~border], moving_v[~border],
                                mesh.reference[border]),
-                conjugate.epipolar.matrix, epsilon=opts.epsilon,
+                lines.matrix, epsilon=opts.epsilon,
                 epsilon_pixels=opts.epsilon_pixels, cost=opts.cost, scale=scale)
             moving_v[found.vertices] = found.moving
             corrections = corrections + found

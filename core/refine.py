@@ -657,11 +657,11 @@ def epipolar_pairs(
     surfaces around it), with a patch shaped by the local affine map of the mesh. A match must
     have no rival peak along the line (repeated texture), correlate well, peak sharply along
     it (:data:`EPI_SHARPNESS`), come back to its point when searched for the other way, lie
-    within the model's threshold of the line, not be contradicted by its neighbours (nor, where
-    none stands near enough to judge it and none moves like it, have a rival peak reaching
-    :data:`EPI_ALONE_AMBIGUITY`), and --
-    when it corrects the mesh by more than :data:`SMALL_PX` -- raise the mutual information of
-    the triangle it splits.
+    within the model's threshold of the line (and on the matched pairs' plane when they lie on
+    one: :meth:`core.epipolar.EpipolarModel.inliers`), not be contradicted by its neighbours
+    (nor, where none stands near enough to judge it and none moves like it, have a rival peak
+    reaching :data:`EPI_ALONE_AMBIGUITY`), and -- when it corrects the mesh by more than
+    :data:`SMALL_PX` -- raise the mutual information of the triangle it splits.
 
     Parameters
     ----------

@@ -385,4 +385,9 @@ def _scaled_model(model: EpipolarModel, scale: np.ndarray, mean: float) -> Epipo
         f = f / np.sqrt(f[2, 0] ** 2 + f[2, 1] ** 2 + f[0, 2] ** 2 + f[1, 2] ** 2)
     else:
         f = f / np.linalg.norm(f)
-    return replace(model, matrix=f, threshold=model.threshold * mean, rms=model.rms * mean)
+    plane = model.plane
+    if plane is not None:
+        plane = np.linalg.inv(pixel_scaling(scale[1])) @ plane @ pixel_scaling(scale[0])
+        plane = plane / plane[2, 2]
+    return replace(model, matrix=f, threshold=model.threshold * mean, rms=model.rms * mean,
+                   plane=plane)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bench import realdata
-from pwlreg.core.epipolar import MIN_PAIRS
+from pwlreg.core.epipolar import MIN_PAIRS, epipolar_lines, line_direction
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.matching import (
     _LK_CRITERIA,
@@ -316,6 +316,11 @@ def test_dropped_pairs_of_a_registration_on_levels_come_back_at_full_resolution(
     # Full-resolution pixels: the true map holds them (on the level they would be ~2x off).
     assert np.median(transfer_error(H, dropped.reference[good], dropped.moving[good])) < 0.5
     assert dropped.reference[:, 0].max() > 500
+    # The pairs lie on one plane, which the model carries in full-resolution pixels too.
+    plane = result.points.epipolar.plane
+    assert plane is not None
+    kept = result.points.reference
+    assert np.abs(transfer(plane, kept) - transfer(H, kept)).max() < 1.0
 
 
 # --- client points --------------------------------------------------------------------------------
@@ -374,6 +379,73 @@ def test_client_outliers_are_all_rejected(model):
     assert np.all(cp.dropped.residuals > cp.epipolar.threshold)
     index = [np.flatnonzero((ref == p).all(axis=1))[0] for p in cp.dropped.reference]
     np.testing.assert_array_equal(cp.dropped.moving, mov[index])
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_client_outliers_on_one_plane_are_rejected(seed):
+    # Pairs on one plane fit a whole family of fundamental matrices: the robust fit picked one
+    # whose lines two random outliers also lay on (7 seeds of 12), or found none and refused
+    # the 28 true pairs (2 seeds).
+    rng = np.random.default_rng(seed)
+    H = np.array([[0.8, 0.25, 60], [-0.1, 0.9, 40], [2e-4, 4e-4, 1.0]])
+    ref = rng.uniform([10, 10], [630, 470], (30, 2))
+    mov = transfer(H, ref) + rng.normal(0, 0.3, ref.shape)
+    mov[:2] = rng.uniform([5, 5], [634, 474], (2, 2))
+    img = np.zeros((480, 640), np.uint8)
+    cp = find_conjugate_points(img, img, opts(), points=(ref, mov))
+    np.testing.assert_array_equal(np.sort(cp.reference, axis=0), np.sort(ref[2:], axis=0))
+    assert cp.rejected["epipolar"] == 2
+    # The model says its lines hold only on that plane, and which plane.
+    assert cp.epipolar.plane is not None
+    assert transfer_error(cp.epipolar.plane, ref[2:], mov[2:]).max() < 1.5
+    assert cp.to_dict()["epipolar"]["plane"] is not None
+
+
+def test_a_planes_lines_hold_on_the_plane_only():
+    # Every line through the plane's map of a point fits the pairs: a match found along the
+    # chosen one is a lookalike unless it lies on the plane.
+    rng = np.random.default_rng(0)
+    H = np.array([[0.8, 0.25, 60], [-0.1, 0.9, 40], [2e-4, 4e-4, 1.0]])
+    ref = rng.uniform([10, 10], [630, 470], (40, 2))
+    img = np.zeros((480, 640), np.uint8)
+    model = find_conjugate_points(img, img, opts(), points=(ref, transfer(H, ref))).epipolar
+    assert model.plane is not None
+    points = rng.uniform([50, 50], [590, 430], (20, 2))
+    on_plane = transfer(H, points)
+    along = on_plane + line_direction(epipolar_lines(model.matrix, points)) * 30.0
+    assert model.inliers(points, on_plane).all()
+    assert model.residuals(points, along).max() < 0.01  # on the chosen lines
+    assert not model.inliers(points, along).any()
+
+
+def test_client_outliers_on_their_epipolar_lines_are_rejected_by_their_neighbours():
+    # An outlier that lies on its epipolar line passes the epipolar filter (a rectified pair's
+    # horizontal lines let one 275 px off pass): the matcher's neighbourhood check, at a gross
+    # miss, catches it.
+    ref, mov, _ = client_pairs(outliers=0.0)
+    img = np.zeros((360, 480), np.uint8)
+    clean = find_conjugate_points(img, img, opts(), points=(ref, mov))
+    line = epipolar_lines(clean.epipolar.matrix, ref[:6])
+    moved = mov.copy()
+    moved[:6] += line_direction(line) * np.array([120, -150, 200, 90, 160, -180])[:, None]
+    assert (moved[:6] > 0).all() and (moved[:6] < [480, 360]).all()
+    assert clean.epipolar.inliers(ref[:6], moved[:6]).all()
+    cp = find_conjugate_points(img, img, opts(), points=(ref, moved))
+    assert cp.rejected["epipolar"] == clean.rejected["epipolar"]
+    assert cp.rejected["neighbours"] == 6
+    np.testing.assert_array_equal(np.sort(cp.dropped.reference[cp.dropped.reason == "neighbours"],
+                                          axis=0), np.sort(ref[:6], axis=0))
+    assert len(cp) == len(clean) - 6
+
+
+def test_client_pairs_off_a_plane_with_a_common_epipole_are_kept():
+    # Parallax on three or more pairs determines the epipole: they are kept and the model has
+    # no plane (a scene of two planes).
+    ref, mov, out = client_pairs(outliers=0.0)
+    img = np.zeros((360, 480), np.uint8)
+    cp = find_conjugate_points(img, img, opts(), points=(ref, mov))
+    assert cp.epipolar.plane is None
+    assert len(cp) >= (1 - MAX_INLIER_LOSS) * len(ref)
 
 
 def test_client_points_are_validated():
