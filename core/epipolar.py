@@ -193,20 +193,8 @@ def plane_homography(ref: np.ndarray, mov: np.ndarray, *, seed: int = 0) -> np.n
     mov = np.ascontiguousarray(mov, np.float64).reshape(-1, 2)
     if len(ref) < 4:
         return None
-    params = cv2.UsacParams()
-    params.threshold = PLANE_PX
-    params.confidence = 0.999
-    params.maxIterations = 10_000
-    params.randomGeneratorState = int(seed)
-    params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MAGSAC
-    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
-    params.loIterations = 10
-    params.loSampleSize = 50
-    params.final_polisher = cv2.MAGSAC
-    params.final_polisher_iterations = 10
     try:
-        H, _ = cv2.findHomography(ref, mov, params)
+        H, _ = cv2.findHomography(ref, mov, _usac(PLANE_PX, seed, 0.999, 10_000))
     except cv2.error:  # USAC asserts on some degenerate samples
         return None
     if H is None or H.shape != (3, 3) or not np.isfinite(H).all() or H[2, 2] == 0:
@@ -456,6 +444,25 @@ def estimate_affine_fundamental(
 # --- projective model -----------------------------------------------------------------------------
 
 
+def _usac(threshold: float, seed: int, confidence: float, max_iterations: int) -> cv2.UsacParams:
+    """OpenCV's USAC settings of both robust fits: MAGSAC++ score, local optimisation, final
+    polishing, one thread (the same input and seed give the same model)."""
+    params = cv2.UsacParams()
+    params.threshold = float(threshold)
+    params.confidence = float(confidence)
+    params.maxIterations = int(max_iterations)
+    params.randomGeneratorState = int(seed)
+    params.sampler = cv2.SAMPLING_UNIFORM
+    params.score = cv2.SCORE_METHOD_MAGSAC
+    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.loIterations = 10
+    params.loSampleSize = 50
+    params.final_polisher = cv2.MAGSAC
+    params.final_polisher_iterations = 10
+    params.isParallel = False
+    return params
+
+
 def estimate_projective_fundamental(
     ref: np.ndarray,
     mov: np.ndarray,
@@ -494,19 +501,7 @@ def estimate_projective_fundamental(
         )
     if not np.all(np.isfinite(X)):
         raise InputError("point coordinates must be finite", "points")
-    params = cv2.UsacParams()
-    params.threshold = float(threshold)
-    params.confidence = float(confidence)
-    params.maxIterations = int(max_iterations)
-    params.randomGeneratorState = int(seed)
-    params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MAGSAC
-    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
-    params.loIterations = 10
-    params.loSampleSize = 50
-    params.final_polisher = cv2.MAGSAC
-    params.final_polisher_iterations = 10
-    params.isParallel = False
+    params = _usac(threshold, seed, confidence, max_iterations)
     r = np.ascontiguousarray(X[:, 2:], dtype=np.float64)
     m = np.ascontiguousarray(X[:, :2], dtype=np.float64)
     try:
