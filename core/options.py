@@ -197,8 +197,9 @@ class RegistrationOptions(BaseModel):
     epipolar_filter: bool = Field(
         True,
         description="Reject point pairs inconsistent with the epipolar geometry (also "
-        "applied to points sent by the client, with a check of each client pair against the "
-        "local affine map of its neighbours for gross errors, over 20 px).",
+        "applied to points sent by the client; a client's pair the filter cannot check, off "
+        "the plane the others lie on or missing its neighbours' map by over 20 px, is kept "
+        "and makes the verdict doubtful).",
     )
     epipolar_threshold: float = Field(
         1.5,

@@ -345,7 +345,7 @@ def register(
                 else:
                     budget = int(move.own_budget * matched) - by_source[name]
                 given = Search(
-                    images=images, epipolar=conjugate.epipolar, measured=len(ref_meas),
+                    images=images, epipolar=conjugate.lines, measured=len(ref_meas),
                     budget=budget, added=(new_ref, new_mov), epsilon=opts.epsilon,
                     epsilon_pixels=opts.epsilon_pixels, round=round_)
                 if move.runs is not None and not move.runs(given):
@@ -378,7 +378,7 @@ def register(
         # client's).
         movable = np.array([o not in ("client", "frame") for o in origins])
         sharp = sharpen_vertices(grey, mesh.reference, mesh.moving, mesh.triangles, movable,
-                                 model=conjugate.epipolar)
+                                 model=conjugate.lines)
         moved = (sharp != mesh.moving).any(axis=1)
         insertion["sharpened"] = int(moved.sum())
         if moved.any():
@@ -416,7 +416,7 @@ def register(
         moving_v[corrections.vertices] = corrections.moving
         # Not along a plane's lines, which hold on the plane only: the insertion's pairs must
         # lie on it (core.epipolar.EpipolarModel.inliers), the border search has no such test.
-        lines = conjugate.epipolar
+        lines = conjugate.lines
         if lines is not None and lines.plane is None and border.any():
             # On the level the verdict and the border's first choice look at.
             found = border_search(

@@ -36,6 +36,7 @@ import numpy as np
 
 from pwlreg.core.flow import flow_scale, forward_backward_error, residual_flows
 from pwlreg.core.imaging import to_gray8
+from pwlreg.core.matching import GEOMETRY_REJECTED, geometry_rejected
 from pwlreg.core.raster import label_image, quantize, triangle_areas
 from pwlreg.core.similarity import (
     ScoringImages,
@@ -171,6 +172,15 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
      "the residual optical flow finds {residual_share:.0%} of the measured area off by more "
      "than " + f"{RESIDUAL_PX:g}" + " px of the scoring level, or cannot follow it (triangles "
      "across depth steps, occlusions, or a radiometric change the flow does not bear)"),
+    (lambda f: f["unverified_pairs"] > 0,
+     "{unverified_pairs} of the client's pairs could not be checked (off the plane the others "
+     "lie on, too few to check each other, or missing the map of their neighbours by over "
+     "20 px): right on a roof or a column, wrong otherwise; their triangles follow them"),
+    (lambda f: f["epipolar_rejected_share"] > GEOMETRY_REJECTED,
+     "the epipolar geometry rejects {epipolar_rejected_share:.0%} of the pairs the other checks "
+     "confirmed: the images do not follow one rigid camera geometry (lens distortion, a "
+     "non-rigid change, a moving scene), and nothing was searched along its lines (with "
+     "epipolar_filter false the pairs it rejected are kept)"),
     (lambda f: f["extrapolated_off_share"] > EXTRAPOLATED_OFF,
      "the residual optical flow finds {extrapolated_off_share:.0%} of the frame, in the "
      "extrapolated border, off by more than " + f"{RESIDUAL_PX:g}" + " px of the scoring "
@@ -197,7 +207,9 @@ class Quality:
         and ``mapped_coverage`` (shares of the reference frame), ``mi_before``/``mi_after``
         (bits), ``nmi_before``/``nmi_after``, ``global_peak``, ``low_consistency_share`` and
         ``textured_share`` (of the measured mesh area), ``residual_share`` and
-        ``extrapolated_off_share`` (:func:`residual_share`).
+        ``extrapolated_off_share`` (:func:`residual_share`), ``epipolar_rejected_share``
+        (:func:`core.matching.geometry_rejected`), ``unverified_pairs`` (the client's pairs
+        the filter could not check: :func:`core.matching.unverified_pairs`).
     triangle_scores : ndarray, shape (T,)
         Per final triangle, the share of its MI lost one step away (1 = sharp peak, <= 0 = no
         peak); NaN for a triangle without texture.
@@ -461,6 +473,8 @@ def assess(
         "extrapolated_coverage": float(areas[~measured].sum()) / frame_area,
         "extrapolated_low_consistency_share": outer_low / outer_area if outer_area else 0.0,
         "textured_share": textured_area / measured_area if measured_area > 0 else 0.0,
+        "epipolar_rejected_share": geometry_rejected(counts, rejected),
+        "unverified_pairs": int(counts.get("unverified", 0)),
     }
     figures["residual_share"], figures["extrapolated_off_share"] = residual_figures
     # Spread thinning is not a rejection: the share counts the pairs the checks let through.

@@ -286,3 +286,59 @@ def test_no_pair_is_searched_along_lines_that_the_pairs_do_not_determine():
     known = np.isfinite(error)
     assert known[result.inserted].all()
     assert not np.any(error[known & result.inserted] > 3.0), error[result.inserted]
+
+
+def test_a_map_no_epipolar_geometry_explains_is_not_called_good():
+    # A smooth non-rigid map (lens distortion, a surface that bends): the epipolar filter
+    # rejected 56 % of the pairs the uniqueness check confirmed (real rigid pairs: at most
+    # 1.5 %), the insertion searched along its wrong lines, and the verdict was good.
+    h, w, amp = 480, 640, 6.0
+    ref = texture((h, w), 21, sigma=2.5)
+
+    def true_map(x, y):
+        return (x + amp * np.sin(2 * np.pi * y / 190.0) + 0.02 * (x - w / 2) + 8,
+                y + 0.8 * amp * np.sin(2 * np.pi * x / 170.0 + 1.0) - 0.015 * (y - h / 2))
+
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    px, py = xs.copy(), ys.copy()
+    for _ in range(60):  # the inverse map, by fixed-point iteration
+        fx, fy = true_map(px, py)
+        px, py = px + (xs - fx), py + (ys - fy)
+    moving = cv2.remap(ref, px.astype(np.float32), py.astype(np.float32), cv2.INTER_LINEAR)
+    result = register(ref, moving, options={"extent": "hull"})
+    assert result.quality.figures["epipolar_rejected_share"] > 0.4
+    assert result.quality.verdict != "good"
+    assert any("epipolar geometry rejects" in r for r in result.quality.reasons)
+    assert result.points.lines is None
+    tx, ty = true_map(*result.reference_vertices[result.inserted].T)
+    error = np.hypot(*(result.moving_vertices[result.inserted] - np.stack([tx, ty], 1)).T)
+    assert error.max() < 1.5, error.max()
+
+
+def test_a_client_pair_the_filter_could_not_check_makes_the_result_doubtful():
+    # A flat scene's 40 true points and one outlier on the line the robust fit chose through
+    # the plane: it passed, its triangles were 100 px off and the verdict good. Nothing tells
+    # it from a true point on a roof: it is kept, and the verdict says so.
+    from pwlreg.core.epipolar import epipolar_lines, line_direction
+    from pwlreg.core.matching import find_conjugate_points
+    from pwlreg.core.options import RegistrationOptions
+
+    ref = texture((480, 640), 23, sigma=2.5)
+    H = np.array([[0.95, 0.05, 12.0], [-0.04, 0.97, 9.0], [5e-5, 2e-5, 1.0]])
+    moving = cv2.warpPerspective(ref, H, (640, 480), flags=cv2.INTER_CUBIC,
+                                 borderMode=cv2.BORDER_REFLECT)
+    rng = np.random.default_rng(4)
+    points = rng.uniform([40, 40], [600, 440], (41, 2))
+    q = np.c_[points, np.ones(41)] @ H.T
+    true = q[:, :2] / q[:, 2:]
+    clean = register(ref, moving, (points[1:], true[1:]), {"extent": "hull"})
+    assert clean.quality.verdict == "good", clean.quality.reasons
+    model = find_conjugate_points(ref, moving, RegistrationOptions(),
+                                  (points[1:], true[1:])).epipolar
+    wrong = true.copy()
+    wrong[0] += 100 * line_direction(epipolar_lines(model.matrix, points[:1]))[0]
+    result = register(ref, moving, (points, wrong), {"extent": "hull"})
+    assert len(result.points) == 41
+    assert result.quality.figures["unverified_pairs"] == 1
+    assert result.quality.verdict == "doubtful"
+    assert any("could not be checked" in r for r in result.quality.reasons)
