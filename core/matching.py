@@ -231,6 +231,9 @@ class ConjugatePoints:
         The pairs dropped for one of :data:`LISTED_AUTOMATIC` (or :data:`LISTED_CLIENT`), one
         by one: as many of each cause as ``rejected`` counts (of the matcher whose pairs were
         kept, when ``auto`` tried several).
+    unverified : np.ndarray or None
+        (N,) bool: the client's kept pairs the filter could not check
+        (:func:`unverified_pairs`); None when it judged none (automatic pairs, no filter).
     """
 
     reference: np.ndarray
@@ -242,6 +245,7 @@ class ConjugatePoints:
     residuals: np.ndarray
     notes: tuple[str, ...] = ()
     dropped: DroppedPairs = field(default_factory=DroppedPairs.none)
+    unverified: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.reference)
@@ -1041,6 +1045,7 @@ def _client(
         raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "validation of the client points")
     model: EpipolarModel | None = None
     residuals = np.full(len(ref), np.nan)
+    unverified = None
     notes: tuple[str, ...] = ()
     needed = MIN_PAIRS[options.epipolar_model]
     if options.epipolar_filter and len(ref) < needed:
@@ -1059,9 +1064,11 @@ def _client(
         counts["epipolar"] = len(ref)
         if len(ref) < MIN_MESH_PAIRS:
             raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "the epipolar filter")
-        counts["unverified"] = int(np.count_nonzero(unverified_pairs(ref, mov, options.seed)))
+        unverified = unverified_pairs(ref, mov, options.seed)
+        counts["unverified"] = int(np.count_nonzero(unverified))
     counts["kept"] = len(ref)
-    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes, dropped)
+    return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes, dropped,
+                           unverified)
 
 
 def unverified_pairs(ref: np.ndarray, mov: np.ndarray, seed: int = 0) -> np.ndarray:

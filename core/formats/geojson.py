@@ -132,11 +132,13 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
     (true or false), ``reason`` (null for a kept pair, else the cause: ``thinned``,
     ``ambiguous``, ``disagreement``, ``low texture``, ``unverifiable``, ``epipolar``,
     ``neighbours``, ``spread`` for automatic pairs; ``not finite``, ``outside image``,
-    ``duplicate``, ``epipolar``, ``neighbours`` for the client's) and ``status`` (``kept`` or
-    ``dropped``). A coordinate the client gave as no finite number is null (and the geometry
-    with it). The member ``dropped`` counts the drops by cause (as mesh.json's
-    ``matching.rejected``, which also counts the matcher's own losses, listed nowhere: a
-    failed track is not a pair), with ``source`` (``client``, ``lk``, ``sift``) and ``notes``.
+    ``duplicate``, ``epipolar`` for the client's), ``status`` (``kept`` or ``dropped``) and,
+    on a client's kept pair the filter judged, ``unverified`` (true when it could not check
+    it: :func:`core.matching.unverified_pairs`). A coordinate the client gave as no finite
+    number is null (and the geometry with it). The member ``dropped`` counts the drops by
+    cause (as mesh.json's ``matching.rejected``, which also counts the matcher's own losses,
+    listed nowhere: a failed track is not a pair), with ``source`` (``client``, ``lk``,
+    ``sift``) and ``notes``.
     """
     reference_geo = georeference(sources.reference_path)
     to_out, members, key = _frame(reference_geo)
@@ -169,6 +171,8 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
             "reason": reasons[i],
             "status": "kept" if i < kept else "dropped",
         }
+        if points.unverified is not None and i < kept:
+            properties["unverified"] = bool(points.unverified[i])
         if moving_coords is not None:
             properties["moving_position"] = _point(moving_coords[i], key)
         position = _point(coords[i], key)

@@ -315,7 +315,7 @@ def test_a_map_no_epipolar_geometry_explains_is_not_called_good():
     assert error.max() < 1.5, error.max()
 
 
-def test_a_client_pair_the_filter_could_not_check_makes_the_result_doubtful():
+def test_a_client_pair_the_filter_could_not_check_makes_the_result_doubtful(tmp_path):
     # A flat scene's 40 true points and one outlier on the line the robust fit chose through
     # the plane: it passed, its triangles were 100 px off and the verdict good. Nothing tells
     # it from a true point on a roof: it is kept, and the verdict says so.
@@ -342,3 +342,10 @@ def test_a_client_pair_the_filter_could_not_check_makes_the_result_doubtful():
     assert result.quality.figures["unverified_pairs"] == 1
     assert result.quality.verdict == "doubtful"
     assert any("could not be checked" in r for r in result.quality.reasons)
+    # Which one: tiepoints.geojson says it of each kept pair.
+    written = write_outputs(result, tmp_path)
+    features = json.loads(written["tiepoints_geojson"].read_text())["features"]
+    flagged = [f["properties"]["reference_px"] for f in features
+               if f["properties"].get("unverified")]
+    np.testing.assert_allclose(flagged, points[:1], atol=1e-3)
+    assert sum("unverified" in f["properties"] for f in features) == 41
