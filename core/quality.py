@@ -36,7 +36,7 @@ import numpy as np
 
 from pwlreg.core.flow import flow_scale, forward_backward_error, residual_flows
 from pwlreg.core.imaging import to_gray8
-from pwlreg.core.matching import GEOMETRY_REJECTED, geometry_rejected
+from pwlreg.core.matching import CLIENT_NEIGHBOUR_PX, GEOMETRY_REJECTED, geometry_rejected
 from pwlreg.core.raster import label_image, quantize, triangle_areas
 from pwlreg.core.similarity import (
     ScoringImages,
@@ -175,7 +175,8 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
     (lambda f: f["unverified_pairs"] > 0,
      "{unverified_pairs} of the client's pairs could not be checked (off the plane the others "
      "lie on, too few to check each other, or missing the map of their neighbours by over "
-     "20 px): right on a roof or a column, wrong otherwise; their triangles follow them"),
+     + f"{CLIENT_NEIGHBOUR_PX:g}" + " px; marked unverified in tiepoints.geojson): right on a "
+     "roof or a column, wrong otherwise; their triangles follow them"),
     (lambda f: f["epipolar_rejected_share"] > GEOMETRY_REJECTED,
      "the epipolar geometry rejects {epipolar_rejected_share:.0%} of the pairs the other checks "
      "confirmed: the images do not follow one rigid camera geometry (lens distortion, a "
