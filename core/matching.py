@@ -758,8 +758,9 @@ def _min_distance_greedy(points: np.ndarray, order: np.ndarray, min_distance: fl
 def _epipolar(
     ref: np.ndarray, mov: np.ndarray, options: RegistrationOptions, stage: str, *,
     checked: bool
-) -> tuple[EpipolarModel, np.ndarray, np.ndarray]:
-    """Robust epipolar fit; returns the model, the inlier mask and all residuals.
+) -> tuple[EpipolarModel, np.ndarray, np.ndarray, np.ndarray | None]:
+    """Robust epipolar fit; returns the model, the inlier mask, all residuals and the
+    homography of the plane most inliers lie on (None when none fits).
 
     When the inliers lie on one plane (:func:`core.epipolar.plane_homography`) the model
     carries it. Fewer than :data:`core.epipolar.PARALLAX_PAIRS` inliers off that plane chose
@@ -790,16 +791,16 @@ def _epipolar(
         rms = float(np.sqrt(np.mean(residuals[on_plane] ** 2)))
         model = EpipolarModel(options.epipolar_model, plane_fundamental(plane), PLANE_PX,
                               len(ref), int(np.count_nonzero(on_plane)), 0, rms, plane)
-        return model, on_plane, residuals
+        return model, on_plane, residuals, plane
     residuals = model.residuals(ref, mov)
     inliers = residuals <= model.threshold
     plane = plane_homography(ref[inliers], mov[inliers], seed=options.seed)
     if plane is None:
-        return model, inliers, residuals
+        return model, inliers, residuals, None
     off = inliers & (transfer_distance(plane, ref, mov) > PLANE_PX)
     if np.count_nonzero(off) >= PARALLAX_PAIRS or (checked and off.any()):
-        return model, inliers, residuals
-    return replace(model, plane=plane), inliers, residuals
+        return model, inliers, residuals, plane
+    return replace(model, plane=plane), inliers, residuals, plane
 
 
 _CHECK_CAUSES = ("ambiguous", "disagreement", "low texture", "unverifiable")
@@ -860,7 +861,7 @@ def _filter_matches(
         residuals = np.full(len(matches.reference), np.nan)
         model = None
     else:
-        model, inl, res = _epipolar(
+        model, inl, res, _ = _epipolar(
             matches.reference, matches.moving, options, f"matching ({matches.source})",
             checked=True)
         matches = matches.drop(inl, "epipolar", res)
@@ -1056,23 +1057,25 @@ def _client(
             f"model needs at least {needed} to reject outliers robustly",
         )
     elif options.epipolar_filter:
-        model, inl, res = _epipolar(ref, mov, options, "validation of the client points",
-                                    checked=False)
+        model, inl, res, plane = _epipolar(ref, mov, options,
+                                           "validation of the client points", checked=False)
         rejected["epipolar"] = int(np.count_nonzero(~inl))
         dropped = dropped.plus(ref[~inl], mov[~inl], "epipolar", res[~inl])
         ref, mov, residuals = ref[inl], mov[inl], res[inl]
         counts["epipolar"] = len(ref)
         if len(ref) < MIN_MESH_PAIRS:
             raise NotEnoughPointsError(len(ref), MIN_MESH_PAIRS, "the epipolar filter")
-        unverified = unverified_pairs(ref, mov, options.seed)
+        unverified = unverified_pairs(ref, mov, plane)
         counts["unverified"] = int(np.count_nonzero(unverified))
     counts["kept"] = len(ref)
     return ConjugatePoints(ref, mov, "client", counts, rejected, model, residuals, notes, dropped,
                            unverified)
 
 
-def unverified_pairs(ref: np.ndarray, mov: np.ndarray, seed: int = 0) -> np.ndarray:
-    """The client's pairs that passed the epipolar filter but that it could not check.
+def unverified_pairs(ref: np.ndarray, mov: np.ndarray, plane: np.ndarray | None) -> np.ndarray:
+    """The client's pairs that passed the epipolar filter but that it could not check, given
+    the homography of the plane most of them lie on (:func:`core.epipolar.plane_homography`;
+    None when none fits: every pair is off it).
 
     Those off the plane most pairs lie on (:func:`core.epipolar.plane_homography`) when fewer
     than :data:`core.epipolar.PARALLAX_PAIRS` are: they alone chose the filter's lines (on a
@@ -1084,7 +1087,6 @@ def unverified_pairs(ref: np.ndarray, mov: np.ndarray, seed: int = 0) -> np.ndar
     a true one on a roof or a column among ground points (a probe dropping them lost 98 true
     points of 229 cases): they are kept, and the verdict says so.
     """
-    plane = plane_homography(ref, mov, seed=seed)
     off = (np.ones(len(ref), bool) if plane is None
            else transfer_distance(plane, ref, mov) > PLANE_PX)
     alone = off if np.count_nonzero(off) < PARALLAX_PAIRS else np.zeros(len(ref), bool)

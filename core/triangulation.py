@@ -9,7 +9,7 @@ from scipy.spatial import Delaunay, QhullError
 
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.mesh import Edge, Mesh, edge_key
-from pwlreg.core.raster import first_occurrences, orientation, quantize, triangle_areas
+from pwlreg.core.raster import first_occurrences, quantize, triangle_areas
 
 
 @dataclass
@@ -145,12 +145,8 @@ MIRRORED_SHARE = 0.9
 def _refuse_a_mirror(mesh: Mesh) -> None:
     """Refuse pairs that map most triangles reversed: a reflection, which no mesh can follow
     (the repair would remove every triangle, and the message blamed the points)."""
-    if not mesh.n_triangles:
-        return
-    corners = [np.moveaxis(p[mesh.triangles], 1, 0) for p in (mesh.reference, mesh.moving)]
-    turned = orientation(*corners[0]) * orientation(*corners[1])
-    reversed_ = int(np.count_nonzero(turned < 0))
-    if reversed_ > MIRRORED_SHARE * mesh.n_triangles:
+    reversed_ = len(mesh.reversed_slots())
+    if mesh.n_triangles and reversed_ > MIRRORED_SHARE * mesh.n_triangles:
         raise InputError(
             f"{reversed_} of {mesh.n_triangles} triangles are reversed in the moving image: it "
             "is a mirror image of the reference (flipped, or a raster whose rows or columns run "
