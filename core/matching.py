@@ -46,6 +46,9 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from pwlreg.core.epipolar import (
     MIN_PAIRS,
@@ -62,7 +65,13 @@ from pwlreg.core.imaging import check_image, to_gray8
 from pwlreg.core.kernels import spaced
 from pwlreg.core.options import RegistrationOptions
 from pwlreg.core.raster import first_occurrences
-from pwlreg.core.reliability import neighbour_outliers, resolved_by_anchors, uniqueness
+from pwlreg.core.reliability import (
+    STILL_PX,
+    fixed_in_frame,
+    neighbour_outliers,
+    resolved_by_anchors,
+    uniqueness,
+)
 from pwlreg.core.similarity import from_level
 
 #: Pairs needed for a mesh (one triangle).
@@ -134,8 +143,8 @@ def geometry_rejected(counts: dict[str, int], rejected: dict[str, int]) -> float
 #: ``"mutual check"``) are counted only: a failed track or a descriptor without a mutual
 #: match is not a pair.
 LISTED_AUTOMATIC = (
-    "thinned", "ambiguous", "disagreement", "low texture", "unverifiable", "epipolar",
-    "neighbours", "spread",
+    "thinned", "fixed in the frame", "ambiguous", "disagreement", "low texture", "unverifiable",
+    "epipolar", "neighbours", "spread",
 )
 
 #: Causes for which the client's pairs are listed one by one: all of them.
@@ -844,6 +853,9 @@ def _filter_matches(
         # as passed (core.quality), and these pairs never reached the checks.
         matches.rejected["thinned"] = n - len(keep)
     matches.counts["checked"] = len(matches.reference)
+    fixed = fixed_in_frame_pairs(matches.reference, matches.moving, seed=options.seed)
+    matches = matches.drop(~fixed, "fixed in the frame")
+    matches.rejected["fixed in the frame"] = int(np.count_nonzero(fixed))
     matches = _verify(matches, images, options.seed)
     needed = MIN_PAIRS[options.epipolar_model] if options.epipolar_filter else MIN_MESH_PAIRS
     if len(matches.reference) < needed:
@@ -873,6 +885,83 @@ def _filter_matches(
     out.rejected["neighbours"] = int(np.count_nonzero(outliers))
     out.counts["neighbours"] = len(out.reference)
     return out, model, residuals[~outliers]
+
+
+#: Fewest moving pairs whose homography predicts the still ones (:func:`fixed_in_frame_pairs`).
+FIXED_MIN_FIT = 15
+
+#: Still pairs closer than this many times the median distance between neighbouring still
+#: pairs form one group; a group spanning :data:`FIXED_AREA` of the pairs' hull or more may be
+#: a part of the scene that stays, not a pattern of the frame (:func:`fixed_in_frame_pairs`).
+FIXED_LINK = 4.0
+FIXED_AREA = 0.25
+
+#: Share of the pairs inside a large group's hull that move, from which the group is a
+#: pattern over the scene rather than a part of it (:func:`fixed_in_frame_pairs`).
+FIXED_AMONG = 0.25
+
+
+def fixed_in_frame_pairs(reference: np.ndarray, moving: np.ndarray, *, seed: int = 0
+                         ) -> np.ndarray:
+    """The pairs :func:`core.reliability.fixed_in_frame` finds still where a homography fitted
+    to the pairs that move (OpenCV's USAC) predicts motion; none when the still pairs are half
+    or more (a scene that mostly stays is a camera that stayed) or the others fit none.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, shape (N, 2)
+        Pairs in pixels.
+    seed : int
+        Seed of the robust fit.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+    """
+    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    mov = np.asarray(moving, dtype=np.float64).reshape(-1, 2)
+    still = np.hypot(*(mov - ref).T) < STILL_PX
+    fixed = np.zeros(len(ref), bool)
+    if not still.any() or 2 * np.count_nonzero(still) >= len(ref):
+        return fixed
+    moves = ~still
+    H = (_robust_homography(ref[moves], mov[moves], 3.0, 5000, seed, FIXED_MIN_FIT)
+         if np.count_nonzero(moves) >= FIXED_MIN_FIT else None)
+    if H is not None:
+        fixed[still] = fixed_in_frame(ref[still], mov[still], _apply_h(H, ref[still]))
+    return fixed & _in_small_groups(ref, fixed)
+
+
+def _in_small_groups(points: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    """The ``chosen`` points but those of a group that is a part of the scene: linked within
+    :data:`FIXED_LINK` times the median distance between neighbouring chosen points, spanning
+    :data:`FIXED_AREA` of the area all the points span or more, with under
+    :data:`FIXED_AMONG` of the other points inside (the still page of an open book, against a
+    caption, a logo or the crossings of a grid over a scene that moves)."""
+    idx = np.flatnonzero(chosen)
+    if len(idx) < 3:
+        return chosen
+    tree = cKDTree(points[idx])
+    spacing = float(np.median(tree.query(points[idx], 2)[0][:, 1]))
+    links = tree.query_pairs(FIXED_LINK * spacing, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(links)), (links[:, 0], links[:, 1])),
+                       shape=(len(idx), len(idx)))
+    _, group = connected_components(graph, directed=False)
+    whole = cv2.contourArea(cv2.convexHull(points.astype(np.float32)))
+    others = points[~chosen]
+    out = chosen.copy()
+    for g in np.unique(group):
+        members = points[idx[group == g]]
+        if (len(members) < 3 or cv2.contourArea(cv2.convexHull(members.astype(np.float32)))
+                < FIXED_AREA * whole):
+            continue
+        try:
+            inside = np.count_nonzero(Delaunay(members).find_simplex(others) >= 0)
+        except QhullError:  # members on a line: no area
+            continue
+        if inside < FIXED_AMONG * (inside + len(members)):
+            out[idx[group == g]] = False
+    return out
 
 
 def _homography_from_matches(

@@ -36,7 +36,12 @@ import numpy as np
 
 from pwlreg.core.flow import flow_scale, forward_backward_error, residual_flows
 from pwlreg.core.imaging import to_gray8
-from pwlreg.core.matching import CLIENT_NEIGHBOUR_PX, GEOMETRY_REJECTED, geometry_rejected
+from pwlreg.core.matching import (
+    CLIENT_NEIGHBOUR_PX,
+    GEOMETRY_REJECTED,
+    fixed_in_frame_pairs,
+    geometry_rejected,
+)
 from pwlreg.core.raster import label_image, quantize, triangle_areas
 from pwlreg.core.similarity import (
     ScoringImages,
@@ -142,6 +147,10 @@ EXTRAPOLATED_OFF = 0.08
 #: cover 1 % of it and 28-30 % of themselves.
 MOVING_COVERED = 0.6
 
+#: Measured vertices fixed in the frame (:func:`core.matching.fixed_in_frame_pairs`) from which
+#: a pattern burned into both images at the same pixels pulls the mesh.
+FIXED_VERTICES = 3
+
 Rule = tuple[Callable[[dict], bool], str]
 
 #: Rules of the verdict, each a test over the figures and the reason it gives.
@@ -182,6 +191,10 @@ DOUBTFUL_RULES: tuple[Rule, ...] = (
      "confirmed: the images do not follow one rigid camera geometry (lens distortion, a "
      "non-rigid change, a moving scene), and nothing was searched along its lines (with "
      "epipolar_filter false the pairs it rejected are kept)"),
+    (lambda f: f["fixed_in_frame_vertices"] >= FIXED_VERTICES,
+     "{fixed_in_frame_vertices} vertices stay at their pixel where the rest of the mesh "
+     "moves: a pattern at the same pixels of both images (a caption, a logo, a grid, a "
+     "sensor's pattern) holds the mesh there; mask it (nodata or alpha) in both images"),
     (lambda f: f["extrapolated_off_share"] > EXTRAPOLATED_OFF,
      "the residual optical flow finds {extrapolated_off_share:.0%} of the frame, in the "
      "extrapolated border, off by more than " + f"{RESIDUAL_PX:g}" + " px of the scoring "
@@ -210,7 +223,9 @@ class Quality:
         ``textured_share`` (of the measured mesh area), ``residual_share`` and
         ``extrapolated_off_share`` (:func:`residual_share`), ``epipolar_rejected_share``
         (:func:`core.matching.geometry_rejected`), ``unverified_pairs`` (the client's pairs
-        the filter could not check: :func:`core.matching.unverified_pairs`).
+        the filter could not check: :func:`core.matching.unverified_pairs`),
+        ``fixed_in_frame_vertices`` (measured vertices that stay at their pixel where the
+        others move: :func:`core.matching.fixed_in_frame_pairs`).
     triangle_scores : ndarray, shape (T,)
         Per final triangle, the share of its MI lost one step away (1 = sharp peak, <= 0 = no
         peak); NaN for a triangle without texture.
@@ -476,6 +491,8 @@ def assess(
         "textured_share": textured_area / measured_area if measured_area > 0 else 0.0,
         "epipolar_rejected_share": geometry_rejected(counts, rejected),
         "unverified_pairs": int(counts.get("unverified", 0)),
+        "fixed_in_frame_vertices": int(np.count_nonzero(fixed_in_frame_pairs(ref[~extra],
+                                                                             mov[~extra]))),
     }
     figures["residual_share"], figures["extrapolated_off_share"] = residual_figures
     # Spread thinning is not a rejection: the share counts the pairs the checks let through.

@@ -40,7 +40,9 @@ from pwlreg.core.kernels import containing, spaced, strip_correlation, window_fi
 from pwlreg.core.optimize import gain_thresholds
 from pwlreg.core.raster import affine_maps, cross_fixed, fixed_point
 from pwlreg.core.reliability import (
+    SCENE_MOTION_PX,
     check_scales,
+    fixed_in_frame,
     neighbour_outliers,
     uniqueness,
     unjudged_pairs,
@@ -271,8 +273,8 @@ def guided_pairs(
     -------
     Insertion
     """
-    counts = {"candidates": 0, "consistent": 0, "checked": 0, "unique": 0, "rejected by mi": 0,
-              "inserted": 0}
+    counts = {"candidates": 0, "consistent": 0, "checked": 0, "unique": 0,
+              "fixed in the frame": 0, "rejected by mi": 0, "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
@@ -324,16 +326,19 @@ def guided_pairs(
         kept, shift = points[part][check.ok], residual[part][check.ok]
         target = kept + shift
         moving = np.column_stack([_sample(map_x, target), _sample(map_y, target)])
+        before = np.column_stack([_sample(map_x, kept), _sample(map_y, kept)])
         mapped = moving[:, 0] >= 0  # the corrected point still falls inside the mesh
         size = np.hypot(*shift.T) / scale  # pixels of the reference
         found.append(_chosen(images, ref_v, mov_v, tris, from_level(kept, scale),
-                             from_level(moving, scale), size, mapped, {}, budget=budget,
-                             epsilon=epsilon, epsilon_pixels=epsilon_pixels))
+                             from_level(moving, scale), from_level(before, scale), size, mapped,
+                             {}, budget=budget, epsilon=epsilon,
+                             epsilon_pixels=epsilon_pixels))
         budget -= len(found[-1].reference)
     counts["checked"] = min(start, len(points))
     if not found:
         return empty
     for one in found:
+        counts["fixed in the frame"] += one.counts["fixed in the frame"]
         counts["rejected by mi"] += one.counts.get("rejected by mi", 0)
         counts["inserted"] += one.counts["inserted"]
     return Insertion(np.concatenate([f.reference for f in found]),
@@ -347,6 +352,7 @@ def _chosen(
     tris: np.ndarray,
     reference: np.ndarray,
     moving: np.ndarray,
+    predicted: np.ndarray,
     size: np.ndarray,
     ok: np.ndarray,
     counts: dict[str, int],
@@ -355,10 +361,20 @@ def _chosen(
     epsilon: float,
     epsilon_pixels: float,
 ) -> Insertion:
-    """The last step of both sources: the candidate pairs ``ok`` whose correction ``size``
+    """The last step of both sources: the candidate pairs ``ok`` that stay at their pixel
+    where the mesh (``predicted``, its moving positions) moves them, inside a triangle whose
+    every vertex moves, are fixed in the frame (:func:`core.reliability.fixed_in_frame`) and
+    dropped; those whose correction ``size``
     exceeds :data:`SMALL_PX` must raise the mutual information of the triangle they split;
     then the ``budget`` largest corrections are kept (``counts`` updated)."""
-    ok = ok.copy()
+    # Only where the whole triangle moves: beside a part of the scene that stays (the still
+    # page of an open book) a still pair is the truth the triangle misses.
+    owner = _containing(ref_v, tris, reference)
+    motion = np.hypot(*(mov_v - ref_v).T)[tris[np.maximum(owner, 0)]].min(axis=1)
+    moves = (owner >= 0) & (motion >= SCENE_MOTION_PX)
+    fixed = ok & moves & fixed_in_frame(reference, moving, predicted)
+    counts["fixed in the frame"] = int(fixed.sum())
+    ok = ok & ~fixed
     large = ok & (size > SMALL_PX)
     if large.any():
         confirmed = _raises_mi(images, ref_v, mov_v, tris, reference[large], moving[large],
@@ -686,7 +702,8 @@ def epipolar_pairs(
     Insertion
     """
     counts = {"candidates": 0, "unique": 0, "correlated": 0, "peaked": 0, "confirmed": 0,
-              "epipolar": 0, "neighbours": 0, "rejected by mi": 0, "inserted": 0}
+              "epipolar": 0, "neighbours": 0, "fixed in the frame": 0, "rejected by mi": 0,
+              "inserted": 0}
     empty = Insertion(np.zeros((0, 2)), np.zeros((0, 2)), counts)
     if budget <= 0:
         return empty
@@ -817,8 +834,9 @@ def epipolar_pairs(
     ok[idx[contradicted | (alone & (rival[idx] >= EPI_ALONE_AMBIGUITY))]] = False
     counts["neighbours"] = int(ok.sum())
     size = np.hypot(*(best_xy - at_sites).T) / scale
-    return _chosen(images, ref_v, mov_v, tris, reference, moving, size, ok, counts,
-                   budget=budget, epsilon=epsilon, epsilon_pixels=epsilon_pixels)
+    return _chosen(images, ref_v, mov_v, tris, reference, moving, from_level(at_sites, scale),
+                   size, ok, counts, budget=budget, epsilon=epsilon,
+                   epsilon_pixels=epsilon_pixels)
 
 
 #: Half side (pixels of the level) of the window a pair is sharpened over (:func:`sharpened`).

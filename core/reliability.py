@@ -10,6 +10,9 @@ independent checks follow every automatic matcher here.
   scales. A pair is **ambiguous** when a second correlation peak comes close to the best one
   (a repeated pattern, where no matcher can know which copy is right), and the matcher and the
   correlation **disagree** when the best peak is not where the matcher put the point.
+* :func:`fixed_in_frame` names the pairs that do not move where the scene moves: a caption,
+  a logo, a grid or a sensor's pattern burned into both images at the same pixels matches
+  itself, and its pairs, many and mutually consistent, vouch for each other.
 * :func:`neighbour_outliers` predicts each pair from an affine map fitted to its nearest
   neighbours; a pair that its neighbourhood contradicts by much more than the neighbourhood
   contradicts itself is dropped; :func:`unjudged_pairs` names the pairs it cannot judge
@@ -57,6 +60,11 @@ AFFINE_RIDGE = 1e-6
 
 #: Standard deviation (grey levels) under which a template has no texture to correlate.
 MIN_TEMPLATE_STD = 2.0
+
+#: A pair that moves less than this (pixels) where the scene is predicted to move by at least
+#: :data:`SCENE_MOTION_PX` is fixed in the frame (:func:`fixed_in_frame`).
+STILL_PX = 1.0
+SCENE_MOTION_PX = 3.0
 
 
 @dataclass(frozen=True)
@@ -247,6 +255,42 @@ def uniqueness(
     cause[checked & disagree] = "disagreement"
     cause[checked & (ratio >= AMBIGUITY_RATIO)] = "ambiguous"
     return UniquenessResult(ok=cause == "", cause=cause)
+
+
+def fixed_in_frame(
+    reference: np.ndarray,
+    moving: np.ndarray,
+    predicted: np.ndarray,
+    *,
+    still_px: float = STILL_PX,
+    motion_px: float = SCENE_MOTION_PX,
+) -> np.ndarray:
+    """Pairs that stay at their pixel where the scene around them moves.
+
+    A pattern at the same pixels of both images (a burned-in caption or logo, a reticle, a
+    sensor's fixed pattern) matches itself with no motion, whatever the scene does. With the
+    camera moved, a point of the scene stays at its pixel only by coincidence.
+
+    Parameters
+    ----------
+    reference, moving : ndarray, shape (N, 2)
+        Pairs in pixels.
+    predicted : ndarray, shape (N, 2)
+        Where the scene takes each reference point (a mesh, or a homography fitted to the
+        pairs that move; NaN: unknown).
+    still_px, motion_px : float
+        A pair moving less than ``still_px`` where the prediction moves at least
+        ``motion_px`` is fixed in the frame.
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+    """
+    ref = np.asarray(reference, dtype=np.float64).reshape(-1, 2)
+    still = np.hypot(*(np.asarray(moving, dtype=np.float64).reshape(-1, 2) - ref).T) < still_px
+    with np.errstate(invalid="ignore"):
+        scene = np.hypot(*(np.asarray(predicted, dtype=np.float64).reshape(-1, 2) - ref).T)
+        return still & (scene >= motion_px)
 
 
 def neighbour_outliers(

@@ -162,8 +162,9 @@ RESULTS: dict[str, ResultFormat] = {
             "pairs the mesh stands on first (id = index in mesh.json's matching.reference), "
             "then every pair dropped on the way; reference_px, moving_px, moving_position "
             "(georeferenced moving image), residual_px (epipolar; null where none judged the "
-            "pair), kept, reason (null, or thinned, ambiguous, disagreement, low texture, "
-            "unverifiable, epipolar, neighbours, spread; for client points not finite, outside "
+            "pair), kept, reason (null, or thinned, fixed in the frame, ambiguous, "
+            "disagreement, low texture, unverifiable, epipolar, neighbours, spread; for client "
+            "points not finite, outside "
             "image, duplicate, epipolar) and status (kept/dropped); the member dropped counts "
             "them per cause. Same coordinates as mesh.geojson.",
             _write_json(geojson.tiepoints_collection, sources=True),

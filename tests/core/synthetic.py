@@ -19,6 +19,19 @@ def texture(shape: tuple[int, int], seed: int, sigma: float = 2.0) -> np.ndarray
     return np.round(img * 255).astype(np.uint8)
 
 
+def captioned(image: np.ndarray) -> np.ndarray:
+    """``image`` with a caption (bottom left) and a logo (top right) burned in: the same pixels
+    on any image."""
+    out = image.copy()
+    for k, line in enumerate(["2026-11-29 14:03:17", "CAM 2  ALT 120 m", "N 48.8566 E 2.3522"]):
+        for colour, thickness in ((0, 4), (255, 2)):
+            cv2.putText(out, line, (10, 300 + 18 * k), cv2.FONT_HERSHEY_SIMPLEX, 0.6, colour,
+                        thickness, cv2.LINE_AA)
+    cv2.rectangle(out, (400, 10), (470, 40), 255, 2)
+    cv2.putText(out, "LOGO", (408, 32), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 2)
+    return out
+
+
 def book_map(x: np.ndarray, y: np.ndarray, crease: float) -> tuple[np.ndarray, np.ndarray]:
     """True position in the moving image of reference pixel (x, y): identity left of the
     crease, a shear and compression right of it (continuous across the crease)."""

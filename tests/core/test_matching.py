@@ -22,12 +22,15 @@ from pwlreg.core.matching import (
     detect_corners,
     estimate_global_prior,
     find_conjugate_points,
+    fixed_in_frame_pairs,
     match_lk,
     match_sift,
     spread_points,
 )
 from pwlreg.core.options import RegistrationOptions
+from pwlreg.core.pipeline import register
 from pwlreg.core.scaled import register as register_on_levels
+from tests.core.synthetic import captioned
 
 MAX_INLIER_LOSS = 0.01  # stated rate for client points with 0.3 px noise at a 1.5 px threshold
 
@@ -604,3 +607,32 @@ def test_a_wide_pair_is_tracked_although_its_coarse_level_is_a_few_rows_high() -
     assert len(matches.reference) > 100
     shift = np.median(matches.moving - matches.reference, axis=0)
     np.testing.assert_allclose(shift, [-2.0, -1.0], atol=0.1)
+
+
+def test_pairs_that_stay_where_a_homography_of_the_others_moves_are_fixed_in_the_frame():
+    rng = np.random.default_rng(3)
+    H = homography(angle_deg=2.0, scale=1.0, tx=7.3, ty=-4.6, px=0)
+    scene = rng.uniform([0, 0], [480, 360], (200, 2))
+    caption = rng.uniform([10, 290], [200, 340], (40, 2))  # a caption: no motion
+    ref = np.concatenate([scene, caption])
+    mov = np.concatenate([transfer(H, scene), caption + rng.normal(0, 0.2, caption.shape)])
+    fixed = fixed_in_frame_pairs(ref, mov)
+    assert fixed.tolist() == [False] * 200 + [True] * 40
+    # A camera that stayed (most pairs still) or a scene that barely moves: nothing fixed.
+    assert not fixed_in_frame_pairs(ref[170:], mov[170:]).any()
+    small = homography(angle_deg=0.0, scale=1.0, tx=1.0, ty=-1.0, px=0)
+    still_scene = np.concatenate([transfer(small, scene), caption])
+    assert not fixed_in_frame_pairs(ref, still_scene).any()
+
+
+def test_a_caption_burned_into_both_images_does_not_hold_the_mesh():
+    # A low-contrast scene moved by 8.6 px under a caption at the same pixels of both images:
+    # its corners matched themselves, still, and 14 vertices of the mesh sat on them 8.6 px
+    # off the scene (verdict good).
+    ref = (70 + 0.35 * texture(seed=1)).astype(np.uint8)
+    H = homography(angle_deg=2.0, scale=1.0, tx=7.3, ty=-4.6, px=0)
+    r = register(captioned(ref), captioned(warp(ref, H)))
+    assert r.points.rejected["fixed in the frame"] > 10
+    measured = ~r.extrapolated
+    off = transfer_error(H, r.reference_vertices[measured], r.moving_vertices[measured])
+    assert np.count_nonzero(off > 3.0) == 0

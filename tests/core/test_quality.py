@@ -18,7 +18,7 @@ from pwlreg.core.quality import (
 )
 from pwlreg.core.similarity import prepare_images
 from pwlreg.core.triangulation import delaunay_triangles
-from tests.core.synthetic import book_map, open_book, texture
+from tests.core.synthetic import book_map, captioned, open_book, texture
 
 
 def _book_case(n: int = 80, seed: int = 0):
@@ -277,3 +277,22 @@ def test_a_gamma_between_the_images_is_no_residual_error():
     moving = np.clip(255 * (moving / 255.0) ** 2.5, 0, 255).astype(np.uint8)
     result = register(ref, moving, options={"extent": "hull"})
     assert result.quality.figures["residual_share"] < 0.02  # 0.095 read in the moving's tones
+
+
+def test_vertices_held_by_a_caption_in_both_images_make_the_verdict_doubtful():
+    # Client points on a caption burned into both images stay at their pixels while the
+    # scene under it moves by 8.6 px: the mesh follows the caption there.
+    reference = (70 + 0.35 * texture((360, 480), 1)).astype(np.uint8)
+    H = np.array([[1.0, 0.0, 7.3], [0.0, 1.0, -4.6], [0.0, 0.0, 1.0]])
+    moving = cv2.warpPerspective(reference, H, (480, 360), flags=cv2.INTER_CUBIC,
+                                 borderMode=cv2.BORDER_REFLECT)
+    rng = np.random.default_rng(0)
+    scene = rng.uniform([20, 20], [460, 280], (120, 2))
+    caption = rng.uniform([15, 290], [220, 340], (12, 2))
+    both = (np.concatenate([scene, caption]), np.concatenate([scene + H[:2, 2], caption]))
+    r = register(captioned(reference), captioned(moving), both)
+    assert r.quality.figures["fixed_in_frame_vertices"] == 12
+    assert r.quality.verdict == "doubtful"
+    assert any("stay at their pixel" in reason for reason in r.quality.reasons)
+    scene_only = register(captioned(reference), captioned(moving), (scene, scene + H[:2, 2]))
+    assert scene_only.quality.figures["fixed_in_frame_vertices"] == 0

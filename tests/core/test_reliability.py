@@ -412,3 +412,13 @@ def test_compiled_affine_fits_match_the_numpy_form():
     good = ((near & ~wrong).sum(axis=1) >= 7) & ((near & wrong).sum(axis=1) == 1)
     close = np.abs(A[good] - affine[good]).max(axis=(1, 2)) < 1.0
     assert good.sum() > 50 and close.mean() > 0.9
+
+
+def test_pairs_still_where_the_scene_moves_are_fixed_in_the_frame():
+    ref = np.array([[10.0, 10.0], [50.0, 50.0], [90.0, 20.0], [30.0, 70.0], [60.0, 60.0]])
+    mov = ref + [[0.3, -0.2], [0.0, 0.0], [2.0, 0.0], [0.1, 0.1], [0.0, 0.4]]
+    predicted = ref + [[7.0, -4.0], [1.5, 0.0], [7.0, -4.0], [np.nan, np.nan], [-3.0, 0.0]]
+    # Still under a moving prediction: fixed. Still where the scene barely moves, moving
+    # itself, or without a prediction: not.
+    assert reliability.fixed_in_frame(ref, mov, predicted).tolist() == [
+        True, False, False, False, True]

@@ -31,6 +31,7 @@ from owslib.ogcapi.processes import Processes
 from referencing import Registry, Resource
 from referencing.jsonschema import DRAFT4
 
+from pwlreg.core.matching import LISTED_AUTOMATIC
 from pwlreg.core.results import RESULTS
 from pwlreg.service.app import create_app
 from pwlreg.service.hrefs import HrefAllowList, check_href
@@ -399,8 +400,7 @@ def test_automatic_points_list_every_dropped_pair_with_its_cause(ogc: Server, pa
     kept = [f["properties"] for f in ties["features"] if f["properties"]["kept"]]
     assert [k["reference_px"] for k in kept] == [[round(x, 4) for x in p]
                                                  for p in matching["reference"]]
-    listed = ("thinned", "ambiguous", "disagreement", "low texture", "unverifiable",
-              "epipolar", "neighbours", "spread")
+    listed = LISTED_AUTOMATIC
     expected = {k: v for k, v in matching["rejected"].items() if k in listed and v}
     assert expected  # the matcher dropped pairs: the test sees some
     reasons = [d["reason"] for d in dropped]
