@@ -904,8 +904,9 @@ FIXED_AMONG = 0.25
 def fixed_in_frame_pairs(reference: np.ndarray, moving: np.ndarray, *, seed: int = 0
                          ) -> np.ndarray:
     """The pairs :func:`core.reliability.fixed_in_frame` finds still where a homography fitted
-    to the pairs that move (OpenCV's USAC) predicts motion; none when the still pairs are half
-    or more (a scene that mostly stays is a camera that stayed) or the others fit none.
+    to the pairs that move (OpenCV's USAC) predicts motion, but for a part of the scene that
+    stays (:func:`_without_scene_parts`); none when the still pairs are half or more (a scene
+    that mostly stays is a camera that stayed) or the others fit no homography.
 
     Parameters
     ----------
@@ -929,10 +930,10 @@ def fixed_in_frame_pairs(reference: np.ndarray, moving: np.ndarray, *, seed: int
          if np.count_nonzero(moves) >= FIXED_MIN_FIT else None)
     if H is not None:
         fixed[still] = fixed_in_frame(ref[still], mov[still], _apply_h(H, ref[still]))
-    return fixed & _in_small_groups(ref, fixed)
+    return _without_scene_parts(ref, fixed)
 
 
-def _in_small_groups(points: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+def _without_scene_parts(points: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     """The ``chosen`` points but those of a group that is a part of the scene: linked within
     :data:`FIXED_LINK` times the median distance between neighbouring chosen points, spanning
     :data:`FIXED_AREA` of the area all the points span or more, with under
