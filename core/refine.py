@@ -364,9 +364,9 @@ def _chosen(
     """The last step of both sources: the candidate pairs ``ok`` that stay at their pixel
     where the mesh (``predicted``, its moving positions) moves them, inside a triangle whose
     every vertex moves, are fixed in the frame (:func:`core.reliability.fixed_in_frame`) and
-    dropped; those whose correction ``size``
-    exceeds :data:`SMALL_PX` must raise the mutual information of the triangle they split;
-    then the ``budget`` largest corrections are kept (``counts`` updated)."""
+    dropped; those whose correction ``size`` exceeds :data:`SMALL_PX` must raise the mutual
+    information of the triangle they split; then the ``budget`` largest corrections are kept
+    (``counts`` updated)."""
     # Only where the whole triangle moves: beside a part of the scene that stays (the still
     # page of an open book) a still pair is the truth the triangle misses.
     owner = _containing(ref_v, tris, reference)
