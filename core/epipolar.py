@@ -156,11 +156,18 @@ PLANE_PX = 3.0
 PARALLAX_PAIRS = 3
 
 
+def apply_homography(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points through a 3x3 homography (NaN or infinite where it sends them to
+    infinity)."""
+    q = np.asarray(points, np.float64) @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return q[:, :2] / q[:, 2:3]
+
+
 def transfer_distance(H: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndarray:
     """Distance (pixels) of each moving point from where ``H`` maps its reference point."""
-    q = np.asarray(ref, np.float64) @ H[:, :2].T + H[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d = np.hypot(*(q[:, :2] / q[:, 2:3] - np.asarray(mov, np.float64)).T)
+    with np.errstate(invalid="ignore"):
+        d = np.hypot(*(apply_homography(H, ref) - np.asarray(mov, np.float64)).T)
     return np.where(np.isfinite(d), d, np.inf)
 
 
@@ -194,7 +201,7 @@ def plane_homography(ref: np.ndarray, mov: np.ndarray, *, seed: int = 0) -> np.n
     if len(ref) < 4:
         return None
     try:
-        H, _ = cv2.findHomography(ref, mov, _usac(PLANE_PX, seed, 0.999, 10_000))
+        H, _ = cv2.findHomography(ref, mov, usac_params(PLANE_PX, seed, 0.999, 10_000))
     except cv2.error:  # USAC asserts on some degenerate samples
         return None
     if H is None or H.shape != (3, 3) or not np.isfinite(H).all() or H[2, 2] == 0:
@@ -444,21 +451,32 @@ def estimate_affine_fundamental(
 # --- projective model -----------------------------------------------------------------------------
 
 
-def _usac(threshold: float, seed: int, confidence: float, max_iterations: int) -> cv2.UsacParams:
-    """OpenCV's USAC settings of both robust fits: MAGSAC++ score, local optimisation, final
-    polishing, one thread (the same input and seed give the same model)."""
+#: OpenCV's USAC settings besides the threshold, confidence, iterations and seed, by score:
+#: MAGSAC++ with sigma-consensus local optimisation and MAGSAC polishing (the epipolar fits and
+#: the plane), or MSAC with inner local optimisation and least-squares polishing (the matcher's
+#: global homographies). Always one thread: the same input and seed give the same model.
+USAC_SCORES = {
+    "magsac": (cv2.SCORE_METHOD_MAGSAC, cv2.LOCAL_OPTIM_SIGMA, 50, cv2.MAGSAC, 10),
+    "msac": (cv2.SCORE_METHOD_MSAC, cv2.LOCAL_OPTIM_INNER_LO, 14, cv2.LSQ_POLISHER, 3),
+}
+
+
+def usac_params(threshold: float, seed: int, confidence: float, max_iterations: int, *,
+                score: Literal["magsac", "msac"] = "magsac") -> cv2.UsacParams:
+    """OpenCV's USAC settings of a robust fit (:data:`USAC_SCORES`)."""
+    method, local, local_sample, polisher, polishing = USAC_SCORES[score]
     params = cv2.UsacParams()
     params.threshold = float(threshold)
     params.confidence = float(confidence)
     params.maxIterations = int(max_iterations)
     params.randomGeneratorState = int(seed)
     params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MAGSAC
-    params.loMethod = cv2.LOCAL_OPTIM_SIGMA
+    params.score = method
+    params.loMethod = local
     params.loIterations = 10
-    params.loSampleSize = 50
-    params.final_polisher = cv2.MAGSAC
-    params.final_polisher_iterations = 10
+    params.loSampleSize = local_sample
+    params.final_polisher = polisher
+    params.final_polisher_iterations = polishing
     params.isParallel = False
     return params
 
@@ -501,7 +519,7 @@ def estimate_projective_fundamental(
         )
     if not np.all(np.isfinite(X)):
         raise InputError("point coordinates must be finite", "points")
-    params = _usac(threshold, seed, confidence, max_iterations)
+    params = usac_params(threshold, seed, confidence, max_iterations)
     r = np.ascontiguousarray(X[:, 2:], dtype=np.float64)
     m = np.ascontiguousarray(X[:, :2], dtype=np.float64)
     try:

@@ -55,10 +55,12 @@ from pwlreg.core.epipolar import (
     PARALLAX_PAIRS,
     PLANE_PX,
     EpipolarModel,
+    apply_homography,
     estimate_fundamental,
     plane_fundamental,
     plane_homography,
     transfer_distance,
+    usac_params,
 )
 from pwlreg.core.errors import InputError, NotEnoughPointsError
 from pwlreg.core.imaging import check_image, to_gray8
@@ -381,13 +383,6 @@ def inside_image(points: np.ndarray, shape: tuple[int, ...], margin: float = 0.0
     )
 
 
-def _apply_h(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Map (N, 2) points through a 3x3 homography."""
-    q = points @ H[:, :2].T + H[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return q[:, :2] / q[:, 2:3]
-
-
 _LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
@@ -530,19 +525,7 @@ def _robust_homography(
 ) -> np.ndarray | None:
     """USAC (MSAC score, inner local optimisation) homography ``dst ~ H src``, normalised so
     that ``H[2, 2] == 1``; None with fewer than ``min_inliers`` inliers."""
-    params = cv2.UsacParams()
-    params.threshold = float(threshold)
-    params.confidence = 0.999
-    params.maxIterations = int(max_iterations)
-    params.randomGeneratorState = int(seed)
-    params.sampler = cv2.SAMPLING_UNIFORM
-    params.score = cv2.SCORE_METHOD_MSAC
-    params.loMethod = cv2.LOCAL_OPTIM_INNER_LO
-    params.loIterations = 10
-    params.loSampleSize = 14
-    params.final_polisher = cv2.LSQ_POLISHER
-    params.final_polisher_iterations = 3
-    params.isParallel = False
+    params = usac_params(threshold, seed, 0.999, max_iterations, score="msac")
     H, mask = cv2.findHomography(src, dst, params)
     if H is None or mask is None or int(mask.sum()) < min_inliers:
         return None
@@ -616,11 +599,11 @@ def match_lk(
     counts["detected"] = len(corners)
     score = np.linspace(1.0, 0.0, len(corners), endpoint=False) if len(corners) else np.empty(0)
     # Corners whose prior position falls outside the moving image cannot be tracked.
-    inside = inside_image(_apply_h(H, corners), mov_gray.shape, margin=-2.0)
+    inside = inside_image(apply_homography(H, corners), mov_gray.shape, margin=-2.0)
     rejected["outside image"] = int(np.count_nonzero(~inside))
     corners, score = corners[inside], score[inside]
     tracked, ok, fb = _lk_pair(a, warped, corners, win, levels)
-    moving = _apply_h(H, tracked)
+    moving = apply_homography(H, tracked)
     ok_in = ok & inside_image(moving, mov_gray.shape)
     rejected["lost"] = int(np.count_nonzero(~ok))
     rejected["outside image"] += int(np.count_nonzero(ok & ~ok_in))
@@ -929,7 +912,7 @@ def fixed_in_frame_pairs(reference: np.ndarray, moving: np.ndarray, *, seed: int
     H = (_robust_homography(ref[moves], mov[moves], 3.0, 5000, seed, FIXED_MIN_FIT)
          if np.count_nonzero(moves) >= FIXED_MIN_FIT else None)
     if H is not None:
-        fixed[still] = fixed_in_frame(ref[still], mov[still], _apply_h(H, ref[still]))
+        fixed[still] = fixed_in_frame(ref[still], mov[still], apply_homography(H, ref[still]))
     return _without_scene_parts(ref, fixed)
 
 
