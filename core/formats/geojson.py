@@ -129,9 +129,8 @@ def tiepoints_collection(result: RegistrationResult, sources: Sources) -> dict:
     reference's own: the line from the geometry to it is the shift the registration
     corrects), ``residual_px`` (distance to the robust epipolar geometry, pixels; null when
     none judged the pair: the filter off or skipped, or the pair dropped before it), ``kept``
-    (true or false), ``reason`` (null for a kept pair, else the cause: ``thinned``,
-    ``ambiguous``, ``disagreement``, ``low texture``, ``unverifiable``, ``epipolar``,
-    ``neighbours``, ``spread`` for automatic pairs; ``not finite``, ``outside image``,
+    (true or false), ``reason`` (null for a kept pair, else the cause: one of
+    :data:`core.matching.LISTED_AUTOMATIC` for automatic pairs; ``not finite``, ``outside image``,
     ``duplicate``, ``epipolar`` for the client's), ``status`` (``kept`` or ``dropped``) and,
     on a client's kept pair the filter judged, ``unverified`` (true when it could not check
     it: :func:`core.matching.unverified_pairs`). A coordinate the client gave as no finite
