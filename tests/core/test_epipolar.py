@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -15,6 +16,7 @@ from pwlreg.core.epipolar import (
     estimate_fundamental,
     estimate_projective_fundamental,
     fit_affine_fundamental,
+    parallax_fundamental,
     sampson_distance,
 )
 from pwlreg.core.errors import InputError
@@ -234,3 +236,66 @@ def test_affine_msac_recovers_any_affine_pair(rx, ry, rz, seed):
     model = estimate_affine_fundamental(ref, mov, THRESHOLD, seed=seed)
     assert model.num_inliers == 60
     assert np.max(model.residuals(ref, mov)) < 1e-6
+
+
+def plane_and_parallax(rng: np.random.Generator, off: int, noise: float = 0.3):
+    """Two pinhole cameras over a tilted ground plane and ``off`` points above it: the plane's
+    homography, the pairs on it and the pairs off it (noisy), and the true F."""
+    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+    R, t = rotation(0.02, 0.17, 0.01), np.array([-1.2, 0.1, 0.2])
+
+    def views(X):
+        a = X @ K.T
+        b = (X @ R.T + t) @ K.T
+        return a[:, :2] / a[:, 2:3], b[:, :2] / b[:, 2:3]
+
+    def ground(n):
+        xy = rng.uniform(-1, 1, (n, 2)) * [3, 2]
+        return np.column_stack([xy, 8.0 + 0.4 * xy[:, 1]])
+
+    plane_ref, plane_mov = views(ground(40))
+    H = cv2.findHomography(plane_ref, plane_mov)[0]
+    X = ground(off)
+    X[:, 2] -= rng.uniform(1.5, 3.0, off)  # nearer the cameras than the ground
+    ref, mov = views(X)
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    noisy = mov + rng.normal(0, noise, mov.shape)
+    return H, (plane_ref, plane_mov), (ref, noisy), F / np.linalg.norm(F)
+
+
+def a_wrong_epipole(H, ref, mov, along):
+    """``[e']_x H`` with ``e'`` on the parallax line of the pair ``ref[0], mov[0]`` but ``along``
+    pixels from where the true lines meet: one pair off the plane leaves that open."""
+    line = np.cross(np.append(cv2.perspectiveTransform(ref[None, :1], H)[0, 0], 1.0),
+                    np.append(mov[0], 1.0))
+    foot = mov[0] + along * np.array([line[1], -line[0]]) / np.hypot(line[0], line[1])
+    e = np.append(foot, 1.0)
+    return np.array([[0, -e[2], e[1]], [e[2], 0, -e[0]], [-e[1], e[0], 0]]) @ H
+
+
+def test_pairs_off_the_plane_fix_the_epipole_one_pair_leaves_open():
+    rng = np.random.default_rng(3)
+    H, (p_ref, p_mov), (ref, mov), F_true = plane_and_parallax(rng, 13)
+    wrong = a_wrong_epipole(H, ref, mov, 40.0)
+    # The lines through the one pair off the plane miss the others' true matches.
+    assert np.median(sampson_distance(wrong, ref[1:], mov[1:])) > 5.0
+    lookalikes = rng.uniform([0, 0], [800, 600], (2, 40, 2))
+    pairs = (np.concatenate([ref[1:], p_ref, lookalikes[0]]),
+             np.concatenate([mov[1:], p_mov, lookalikes[1]]))
+    found = parallax_fundamental(H, (ref[:1], mov[:1]), pairs, wrong, threshold=THRESHOLD)
+    assert found is not None
+    F, support = found
+    assert support >= 11
+    assert sampson_distance(F, ref, mov).max() < 1.0
+    assert np.isclose(np.linalg.norm(F), 1.0) and np.sum(F * wrong) > 0
+
+
+def test_lookalikes_alone_do_not_move_the_epipole():
+    rng = np.random.default_rng(4)
+    H, (p_ref, p_mov), (ref, mov), _ = plane_and_parallax(rng, 1)
+    wrong = a_wrong_epipole(H, ref, mov, 40.0)
+    for seed in range(50):
+        lookalikes = np.random.default_rng(seed).uniform([0, 0], [800, 600], (2, 60, 2))
+        pairs = (np.concatenate([p_ref, lookalikes[0]]), np.concatenate([p_mov, lookalikes[1]]))
+        assert parallax_fundamental(H, (ref, mov), pairs, wrong, threshold=THRESHOLD) is None
