@@ -1098,7 +1098,7 @@ def _parallax_lines(
 
     Then those pairs alone chose the lines off the plane, and the line search found lookalikes
     along them (a box whose pairs all stood on the ground but one: its lines 20 px from the
-    true matches at the 90th percentile, and 28 of 87 pairs inserted on its striped face 40-65
+    true matches at the 90th percentile, and 28 of 87 pairs inserted on its striped face 12-65
     px off). The tracker keeps few pairs off the plane because the prior homography leaves
     their motion beyond its reach; SIFT matches them wherever they are, mostly wrongly, and
     the right ones agree on one epipole. SIFT runs in this case only.
