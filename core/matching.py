@@ -43,6 +43,7 @@ top-left pixel.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
@@ -1007,10 +1008,13 @@ def _automatic(
         return match_lk(ref_gray, mov_gray, candidates, options.min_distance, seed=seed,
                         prior=prior, equalized=images)
 
+    # SIFT's matches when a step below has them (the epipole's fix reuses them).
+    sift_matches: Matches | None = None
     if options.matcher == "lk":
         result = _try_filter(lk(), options, images)
     elif options.matcher == "sift":
-        result = _try_filter(match_sift(ref_gray, mov_gray, candidates), options, images)
+        sift_matches = match_sift(ref_gray, mov_gray, candidates)
+        result = _try_filter(sift_matches, options, images)
     else:
         tracked = _try_filter(lk(), options, images)
         result = tracked
@@ -1067,8 +1071,10 @@ def _automatic(
         raise NotEnoughPointsError(len(keep), MIN_MESH_PAIRS, stage)
     final = matches.drop(_mask(keep, len(matches.reference)), "spread", residuals)
     residuals = residuals[keep]
-    lines = _parallax_lines(model, final.reference, final.moving, ref_gray, mov_gray,
-                            candidates, options.seed)
+    lines = _parallax_lines(
+        model, final.reference, final.moving, options.seed,
+        lambda: sift_matches if sift_matches is not None
+        else match_sift(ref_gray, mov_gray, candidates))
     if lines is not model:
         model, residuals = lines, lines.residuals(final.reference, final.moving)
     return ConjugatePoints(
@@ -1087,10 +1093,8 @@ def _parallax_lines(
     model: EpipolarModel | None,
     reference: np.ndarray,
     moving: np.ndarray,
-    ref_gray: np.ndarray,
-    mov_gray: np.ndarray,
-    candidates: int,
     seed: int,
+    sift: Callable[[], Matches],
 ) -> EpipolarModel | None:
     """``model`` with the epipole SIFT's pairs fix (:func:`core.epipolar.parallax_fundamental`)
     when only one or two of the matcher's pairs lie off the plane of the others, or ``model``
@@ -1101,7 +1105,8 @@ def _parallax_lines(
     true matches at the 90th percentile, and 28 of 87 pairs inserted on its striped face 12-65
     px off). The tracker keeps few pairs off the plane because the prior homography leaves
     their motion beyond its reach; SIFT matches them wherever they are, mostly wrongly, and
-    the right ones agree on one epipole. SIFT runs in this case only.
+    the right ones agree on one epipole. ``sift()`` gives SIFT's matches of the two images,
+    called in this case only.
     """
     if model is None or model.kind != "projective" or model.plane is not None:
         return model
@@ -1111,9 +1116,10 @@ def _parallax_lines(
     off = transfer_distance(H, reference, moving) > PLANE_PX
     if not 0 < np.count_nonzero(off) < PARALLAX_PAIRS:
         return model
-    sift = match_sift(ref_gray, mov_gray, candidates)
-    found = parallax_fundamental(H, (reference[off], moving[off]), (sift.reference, sift.moving),
-                                 model.matrix, threshold=model.threshold)
+    matches = sift()
+    found = parallax_fundamental(H, (reference[off], moving[off]),
+                                 (matches.reference, matches.moving), model.matrix,
+                                 threshold=model.threshold)
     if found is None:
         return model
     return replace(model, matrix=found[0], parallax=found[1])

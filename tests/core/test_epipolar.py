@@ -43,22 +43,24 @@ def affine_scene(rng: np.random.Generator, n: int, angles=(0.05, 0.15, 0.03)):
     return X @ M1.T + t1, X @ M2.T + t2
 
 
+K_CAMERA = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
+R_MOVING, T_MOVING = rotation(0.02, 0.17, 0.01), np.array([-1.2, 0.1, 0.2])
+
+
+def two_views(X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """3-D points seen by two pinhole cameras 10 deg apart: ref, mov and the true F."""
+    a = X @ K_CAMERA.T
+    b = (X @ R_MOVING.T + T_MOVING) @ K_CAMERA.T
+    t = T_MOVING
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    K_inv = np.linalg.inv(K_CAMERA)
+    F = K_inv.T @ tx @ R_MOVING @ K_inv
+    return a[:, :2] / a[:, 2:3], b[:, :2] / b[:, 2:3], F / np.linalg.norm(F)
+
+
 def perspective_scene(rng: np.random.Generator, n: int):
     """Two pinhole cameras 10 deg apart around a 3-D point cloud; returns ref, mov, true F."""
-    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
-    X = rng.uniform(-1, 1, (n, 3)) * [3, 2, 1.5] + [0, 0, 8]
-    R = rotation(0.02, 0.17, 0.01)
-    t = np.array([-1.2, 0.1, 0.2])
-
-    def project(P):
-        x = X @ P[:, :3].T + P[:, 3]
-        return x[:, :2] / x[:, 2:3]
-
-    ref = project(K @ np.hstack([np.eye(3), np.zeros((3, 1))]))
-    mov = project(K @ np.hstack([R, t[:, None]]))
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
-    return ref, mov, F / np.linalg.norm(F)
+    return two_views(rng.uniform(-1, 1, (n, 3)) * [3, 2, 1.5] + [0, 0, 8])
 
 
 def inject_outliers(rng, ref, mov, F, share, min_residual):
@@ -239,29 +241,20 @@ def test_affine_msac_recovers_any_affine_pair(rx, ry, rz, seed):
 
 
 def plane_and_parallax(rng: np.random.Generator, off: int, noise: float = 0.3):
-    """Two pinhole cameras over a tilted ground plane and ``off`` points above it: the plane's
-    homography, the pairs on it and the pairs off it (noisy), and the true F."""
-    K = np.array([[800.0, 0, 400], [0, 800, 300], [0, 0, 1]])
-    R, t = rotation(0.02, 0.17, 0.01), np.array([-1.2, 0.1, 0.2])
-
-    def views(X):
-        a = X @ K.T
-        b = (X @ R.T + t) @ K.T
-        return a[:, :2] / a[:, 2:3], b[:, :2] / b[:, 2:3]
+    """The cameras of :func:`two_views` over a tilted ground plane and ``off`` points above
+    it: the plane's homography, the pairs on it and the pairs off it (noisy), and the true F."""
 
     def ground(n):
         xy = rng.uniform(-1, 1, (n, 2)) * [3, 2]
         return np.column_stack([xy, 8.0 + 0.4 * xy[:, 1]])
 
-    plane_ref, plane_mov = views(ground(40))
+    plane_ref, plane_mov, _ = two_views(ground(40))
     H = cv2.findHomography(plane_ref, plane_mov)[0]
     X = ground(off)
     X[:, 2] -= rng.uniform(1.5, 3.0, off)  # nearer the cameras than the ground
-    ref, mov = views(X)
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    F = np.linalg.inv(K).T @ tx @ R @ np.linalg.inv(K)
+    ref, mov, F = two_views(X)
     noisy = mov + rng.normal(0, noise, mov.shape)
-    return H, (plane_ref, plane_mov), (ref, noisy), F / np.linalg.norm(F)
+    return H, (plane_ref, plane_mov), (ref, noisy), F
 
 
 def a_wrong_epipole(H, ref, mov, along):
