@@ -234,6 +234,16 @@ PARALLAX_SUPPORT = 6
 PARALLAX_SHARE = 0.125
 PARALLAX_GAIN = 2.0
 
+#: Least spread (pixels, root mean square about their mean) of the displacements from the
+#: plane of the pairs that fix an epipole without a fixed pair (:func:`parallax_fundamental`):
+#: a pattern repeated on the plane and matched one period off moves every pair alike. Boxes,
+#: prisms and gables on the ground (trust suite, seeds 100-103): 30-115 px.
+PARALLAX_SPREAD = 2 * PLANE_PX
+
+#: Most proposals of an epipole drawn from two pairs each when no fixed pair pins it
+#: (:func:`parallax_fundamental`): 200 pairs off the plane make 19 900.
+PARALLAX_PROPOSALS = 4000
+
 
 def parallax_fundamental(
     H: np.ndarray,
@@ -242,22 +252,31 @@ def parallax_fundamental(
     current: np.ndarray,
     *,
     threshold: float,
+    seed: int = 0,
 ) -> tuple[np.ndarray, int] | None:
     """The fundamental matrix ``[e']_x H`` that more pairs off the plane ``H`` support than
     ``current`` does, its epipole fixed by the pairs themselves; None when none does clearly.
 
     A pair off a plane moves away from where the plane maps it along its epipolar line, so the
     line through both points passes through the epipole ``e'`` (plane plus parallax; Hartley &
-    Zisserman, *Multiple View Geometry*, 2nd ed., sec. 13.3). With one or two such pairs the
-    epipole is anywhere on one line, or where two nearly parallel lines meet, and a robust fit
-    picks it at random: its lines then miss the true matches away from the plane by tens of
-    pixels. Here the epipole must lie on the lines of every ``fixed`` pair (the checked pairs
-    off the plane); each other pair off the plane proposes where (its line's intersection with
-    the first fixed pair's, or that line's point at infinity), and the proposal most pairs
-    support (Sampson distance at most ``threshold``, the fixed pairs among them) wins, refitted
-    by least squares to its supporters' lines. It must be supported by at least
-    :data:`PARALLAX_SUPPORT` pairs besides the fixed ones and :data:`PARALLAX_SHARE` of the
-    candidates off the plane, and by :data:`PARALLAX_GAIN` times as many pairs as ``current``.
+    Zisserman, *Multiple View Geometry*, 2nd ed., sec. 13.3). With no, one or two such pairs
+    the epipole is anywhere, anywhere on one line, or where two nearly parallel lines meet, and
+    a robust fit picks it at random: its lines then miss the true matches away from the plane
+    by tens of pixels. Here the epipole must lie on the lines of every ``fixed`` pair (the
+    checked pairs off the plane); each other pair off the plane proposes where (its line's
+    intersection with the first fixed pair's, or that line's point at infinity), or, without
+    a fixed pair, each two of them do (where their lines meet; at most
+    :data:`PARALLAX_PROPOSALS` of them, drawn with ``seed``). The proposal most pairs support
+    (Sampson distance at most ``threshold``, the fixed pairs among them) wins, refitted by
+    least squares to its supporters' lines. It must be supported by at least
+    :data:`PARALLAX_SUPPORT` pairs besides the fixed ones (besides the two that proposed it,
+    without) and :data:`PARALLAX_SHARE` of the candidates off the plane, and by
+    :data:`PARALLAX_GAIN` times as many pairs as ``current``; without a fixed pair, also
+    :data:`PARALLAX_GAIN` times as many as its best rival (the best proposal that shares at
+    most two supporters with it), and its supporters' displacements from the plane must spread
+    over :data:`PARALLAX_SPREAD` (root mean square about their mean): lookalikes of a texture
+    meet near some point together and as well near others, and those of a pattern repeated on
+    the plane, all one period off, meet where their parallel lines do.
 
     Parameters
     ----------
@@ -265,7 +284,7 @@ def parallax_fundamental(
         (3, 3) homography reference -> moving of the plane.
     fixed : (np.ndarray, np.ndarray)
         ``(reference (K, 2), moving (K, 2))`` pairs off the plane that the epipole's lines must
-        pass through, K >= 1.
+        pass through, K >= 0.
     pairs : (np.ndarray, np.ndarray)
         Candidate pairs ``(reference (M, 2), moving (M, 2))``, of another matcher, on the plane
         or off it (those within :data:`PLANE_PX` of it are left out: they fit every epipole).
@@ -273,6 +292,8 @@ def parallax_fundamental(
         (3, 3) fundamental matrix to improve on.
     threshold : float
         Largest Sampson distance (pixels) of a supporting pair.
+    seed : int
+        State of the draw of the proposals without a fixed pair.
 
     Returns
     -------
@@ -288,7 +309,8 @@ def parallax_fundamental(
     ref = np.concatenate([f_ref, c_ref[off]])
     mov = np.concatenate([f_mov, c_mov[off]])
     k = len(f_ref)
-    if k == 0 or len(ref) - k < PARALLAX_SUPPORT:
+    proposers = 0 if k else 2
+    if len(ref) - k < PARALLAX_SUPPORT + proposers:
         return None
     ones = np.ones((len(ref), 1))
     lines = np.cross(np.hstack([apply_homography(H, ref), ones]), np.hstack([mov, ones]))
@@ -297,36 +319,75 @@ def parallax_fundamental(
     usable = np.isfinite(lines).all(axis=1)
     if not usable[:k].all():
         return None
-    first = lines[0]
-    proposals = [np.array([first[1], -first[0], 0.0])]
-    proposals += [np.cross(first, line) for line in lines[k:][usable[k:]]]
+    if k:
+        first = lines[0]
+        proposals = np.array([[first[1], -first[0], 0.0]]
+                             + [np.cross(first, line) for line in lines[k:][usable[k:]]])
+    else:
+        candidates = lines[usable]
+        i, j = np.triu_indices(len(candidates), 1)
+        if len(i) > PARALLAX_PROPOSALS:
+            drawn = np.random.default_rng(seed).choice(len(i), PARALLAX_PROPOSALS, replace=False)
+            i, j = i[np.sort(drawn)], j[np.sort(drawn)]
+        proposals = np.cross(candidates[i], candidates[j])
+    norm = np.linalg.norm(proposals, axis=1)
+    proposals = proposals[norm > 1e-12] / norm[norm > 1e-12, None]
+    supports = _supports(proposals, H, ref, mov, threshold)
+    pinned = supports[:, :k].all(axis=1)
+    proposals, supports = proposals[pinned], supports[pinned]
+    if not len(supports):
+        return None
+    counts = supports.sum(axis=1)
+    chosen = int(np.argmax(counts))
+    best = supports[chosen]
+    rival, spread = 0, np.inf
+    if not k:
+        apart = (supports & best).sum(axis=1) <= 2
+        rival = int(counts[apart].max()) if apart.any() else 0
+        shift = mov[best] - apply_homography(H, ref[best])
+        spread = float(np.sqrt(np.mean(np.sum((shift - shift.mean(axis=0)) ** 2, axis=1))))
 
     def support(F: np.ndarray) -> np.ndarray:
         return sampson_distance(F, ref, mov) <= threshold
 
-    best, chosen = None, None
-    for e in proposals:
-        if not np.linalg.norm(e) > 0:
-            continue
-        inl = support(_cross_matrix(e) @ H)
-        if inl[:k].all() and (best is None or inl.sum() > best.sum()):
-            best, chosen = inl, e
-    if best is None:
-        return None
     # The point nearest every supporter's line (the right singular vector of least weight),
     # unless it leaves a fixed pair off its lines or fewer pairs on them.
-    F = _cross_matrix(chosen) @ H
+    F = _cross_matrix(proposals[chosen]) @ H
     refitted = _cross_matrix(np.linalg.svd(lines[best])[2][-1]) @ H
     kept = support(refitted)
     if kept[:k].all() and kept.sum() >= best.sum():
         F, best = refitted, kept
-    if (best.sum() - k < max(PARALLAX_SUPPORT, PARALLAX_SHARE * (len(ref) - k))
-            or best.sum() < PARALLAX_GAIN * np.count_nonzero(support(current))):
+    found = int(best.sum()) - k
+    if (found < max(PARALLAX_SUPPORT + proposers, PARALLAX_SHARE * (len(ref) - k))
+            or best.sum() < PARALLAX_GAIN * np.count_nonzero(support(current))
+            or best.sum() < PARALLAX_GAIN * rival or spread < PARALLAX_SPREAD):
         return None
     F = F / np.linalg.norm(F)
     if np.sum(F * current) < 0:
         F = -F
-    return F, int(best.sum()) - k
+    return F, found
+
+
+def _supports(epipoles: np.ndarray, H: np.ndarray, ref: np.ndarray, mov: np.ndarray,
+              threshold: float) -> np.ndarray:
+    """(P, N) whether each pair is within ``threshold`` (Sampson distance, pixels) of the
+    lines of ``[e']_x H`` for each of the P ``epipoles``, in blocks that bound the memory."""
+    x = np.column_stack([ref, np.ones(len(ref))])
+    hx = x @ H.T
+    xp = np.column_stack([mov, np.ones(len(mov))])
+    out = np.empty((len(epipoles), len(ref)), bool)
+    for start in range(0, len(epipoles), 1024):
+        e = epipoles[start:start + 1024]
+        lines = np.cross(e[:, None, :], hx[None, :, :])  # F x = e' x (H x)
+        # F^T x' = H^T (x' x e'): the reference image's lines.
+        back = np.cross(xp[None, :, :], e[:, None, :]) @ H
+        error = np.einsum("pnk,nk->pn", lines, xp)
+        gradient = (lines[..., 0] ** 2 + lines[..., 1] ** 2
+                    + back[..., 0] ** 2 + back[..., 1] ** 2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            distance = np.abs(error) / np.sqrt(gradient)
+        out[start:start + 1024] = np.isfinite(distance) & (distance <= threshold)
+    return out
 
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:

@@ -1074,7 +1074,8 @@ def _automatic(
     lines = _parallax_lines(
         model, final.reference, final.moving, options.seed,
         lambda: sift_matches if sift_matches is not None
-        else match_sift(ref_gray, mov_gray, candidates))
+        else match_sift(ref_gray, mov_gray, candidates),
+        threshold=options.epipolar_threshold)
     if lines is not model:
         model, residuals = lines, lines.residuals(final.reference, final.moving)
     return ConjugatePoints(
@@ -1095,34 +1096,39 @@ def _parallax_lines(
     moving: np.ndarray,
     seed: int,
     sift: Callable[[], Matches],
+    *,
+    threshold: float,
 ) -> EpipolarModel | None:
     """``model`` with the epipole SIFT's pairs fix (:func:`core.epipolar.parallax_fundamental`)
-    when only one or two of the matcher's pairs lie off the plane of the others, or ``model``
+    when none, one or two of the matcher's pairs lie off the plane of the others, or ``model``
     itself.
 
-    Then those pairs alone chose the lines off the plane, and the line search found lookalikes
-    along them (a box whose pairs all stood on the ground but one: its lines 20 px from the
-    true matches at the 90th percentile, and 28 of 87 pairs inserted on its striped face 12-65
-    px off). The tracker keeps few pairs off the plane because the prior homography leaves
-    their motion beyond its reach; SIFT matches them wherever they are, mostly wrongly, and
-    the right ones agree on one epipole. ``sift()`` gives SIFT's matches of the two images,
-    called in this case only.
+    Then no pair or those pairs alone chose the lines off the plane. With one or two, the line
+    search found lookalikes along them (a box whose pairs all stood on the ground but one: its
+    lines 20 px from the true matches at the 90th percentile, and 28 of 87 pairs inserted on
+    its striped face 12-65 px off). With none, the model is the plane's, whose lines hold on
+    it only: the insertion keeps to the plane and leaves the surfaces above it to the
+    triangles spanning them (boxes and prisms on the ground 15-135 px from their lines). The
+    tracker keeps few pairs off the plane because the prior homography leaves their motion
+    beyond its reach; SIFT matches them wherever they are, mostly wrongly, and the right ones
+    (and lookalikes along their lines) agree on one epipole. ``sift()`` gives SIFT's matches
+    of the two images, called in these cases only; ``threshold`` is the epipolar filter's.
     """
-    if model is None or model.kind != "projective" or model.plane is not None:
+    if model is None or model.kind != "projective":
         return model
     H = plane_homography(reference, moving, seed=seed)
     if H is None:
         return model
     off = transfer_distance(H, reference, moving) > PLANE_PX
-    if not 0 < np.count_nonzero(off) < PARALLAX_PAIRS:
+    if np.count_nonzero(off) >= PARALLAX_PAIRS or (model.plane is None) != off.any():
         return model
     matches = sift()
     found = parallax_fundamental(H, (reference[off], moving[off]),
                                  (matches.reference, matches.moving), model.matrix,
-                                 threshold=model.threshold)
+                                 threshold=threshold, seed=seed)
     if found is None:
         return model
-    return replace(model, matrix=found[0], parallax=found[1])
+    return replace(model, matrix=found[0], plane=None, parallax=found[1])
 
 
 def _mask(indices: np.ndarray, n: int) -> np.ndarray:

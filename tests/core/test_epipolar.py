@@ -17,6 +17,7 @@ from pwlreg.core.epipolar import (
     estimate_projective_fundamental,
     fit_affine_fundamental,
     parallax_fundamental,
+    plane_fundamental,
     sampson_distance,
 )
 from pwlreg.core.errors import InputError
@@ -292,3 +293,54 @@ def test_lookalikes_alone_do_not_move_the_epipole():
         lookalikes = np.random.default_rng(seed).uniform([0, 0], [800, 600], (2, 60, 2))
         pairs = (np.concatenate([p_ref, lookalikes[0]]), np.concatenate([p_mov, lookalikes[1]]))
         assert parallax_fundamental(H, (ref, mov), pairs, wrong, threshold=THRESHOLD) is None
+
+
+def vertical_lines(H):
+    """``[e']_x H`` with ``e'`` at infinity along y: lines a plane allows, across the true ones
+    of :func:`two_views` (the cameras move sideways)."""
+    return np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]) @ H
+
+
+def no_pair():
+    return np.zeros((0, 2)), np.zeros((0, 2))
+
+
+def test_pairs_off_the_plane_fix_the_epipole_no_pair_fixes():
+    # All the matcher's pairs on the ground: the plane's model has lines of its own choosing.
+    rng = np.random.default_rng(5)
+    H, (p_ref, p_mov), (ref, mov), F_true = plane_and_parallax(rng, 14)
+    wrong = vertical_lines(H)
+    assert np.median(sampson_distance(wrong, ref, mov)) > 5.0
+    lookalikes = rng.uniform([0, 0], [800, 600], (2, 40, 2))
+    pairs = (np.concatenate([ref, p_ref, lookalikes[0]]),
+             np.concatenate([mov, p_mov, lookalikes[1]]))
+    found = parallax_fundamental(H, no_pair(), pairs, wrong, threshold=THRESHOLD)
+    assert found is not None
+    F, support = found
+    assert support >= 12
+    # The lines pass near the exact matches of other points above the plane.
+    exact_ref, exact_mov, _ = perspective_scene(rng, 200)
+    assert np.percentile(sampson_distance(wrong, exact_ref, exact_mov), 90) > 10.0
+    assert np.percentile(sampson_distance(F, exact_ref, exact_mov), 90) < 1.5
+
+
+def test_lookalikes_alone_do_not_move_the_plane_s_epipole():
+    rng = np.random.default_rng(6)
+    H, (p_ref, p_mov), _, _ = plane_and_parallax(rng, 1)
+    wrong = plane_fundamental(H)
+    for seed in range(50):
+        lookalikes = np.random.default_rng(seed).uniform([0, 0], [800, 600], (2, 60, 2))
+        pairs = (np.concatenate([p_ref, lookalikes[0]]), np.concatenate([p_mov, lookalikes[1]]))
+        assert parallax_fundamental(H, no_pair(), pairs, wrong, threshold=THRESHOLD) is None
+
+
+def test_a_pattern_one_period_off_does_not_move_the_plane_s_epipole():
+    # Windows of a facade matched one window off: every pair moved alike, their lines parallel.
+    rng = np.random.default_rng(7)
+    H, (p_ref, p_mov), _, _ = plane_and_parallax(rng, 1)
+    wrong = plane_fundamental(H)
+    period = p_mov + [24.0, 1.0] + rng.normal(0, 0.3, p_mov.shape)
+    lookalikes = rng.uniform([0, 0], [800, 600], (2, 20, 2))
+    pairs = (np.concatenate([p_ref, p_ref, lookalikes[0]]),
+             np.concatenate([p_mov, period, lookalikes[1]]))
+    assert parallax_fundamental(H, no_pair(), pairs, wrong, threshold=THRESHOLD) is None
