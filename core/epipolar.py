@@ -67,8 +67,8 @@ class EpipolarModel:
         those, and its lines hold only on that plane.
     parallax : int
         Pairs of a second matcher whose displacements from the plane of the fitted pairs fixed
-        the epipole of ``matrix`` (:func:`parallax_fundamental`) where one or two of the fitted
-        pairs lay off that plane; 0 when ``matrix`` is the robust fit's.
+        the epipole of ``matrix`` (:func:`parallax_fundamental`) where none, one or two of the
+        fitted pairs lay off that plane; 0 when ``matrix`` is the robust fit's (or the plane's).
     """
 
     kind: EpipolarKind
