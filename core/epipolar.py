@@ -325,10 +325,7 @@ def parallax_fundamental(
                              + [np.cross(first, line) for line in lines[k:][usable[k:]]])
     else:
         candidates = lines[usable]
-        i, j = np.triu_indices(len(candidates), 1)
-        if len(i) > PARALLAX_PROPOSALS:
-            drawn = np.random.default_rng(seed).choice(len(i), PARALLAX_PROPOSALS, replace=False)
-            i, j = i[np.sort(drawn)], j[np.sort(drawn)]
+        i, j = _couples(len(candidates), PARALLAX_PROPOSALS, seed)
         proposals = np.cross(candidates[i], candidates[j])
     norm = np.linalg.norm(proposals, axis=1)
     proposals = proposals[norm > 1e-12] / norm[norm > 1e-12, None]
@@ -368,16 +365,31 @@ def parallax_fundamental(
     return F, found
 
 
+def _couples(n: int, most: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The couples ``i < j`` of ``n`` items in the order of :func:`numpy.triu_indices`, or
+    ``most`` of them drawn with ``seed`` when there are more, without listing them all (a
+    raster's thousands of pairs make millions of couples)."""
+    count = n * (n - 1) // 2
+    k = (np.arange(count) if count <= most
+         else np.sort(np.random.default_rng(seed).choice(count, most, replace=False)))
+    rows = np.arange(n)
+    first = rows * n - rows * (rows + 1) // 2  # index of the couple (i, i + 1)
+    i = np.searchsorted(first, k, side="right") - 1
+    return i, k - first[i] + i + 1
+
+
 def _supports(epipoles: np.ndarray, H: np.ndarray, ref: np.ndarray, mov: np.ndarray,
               threshold: float) -> np.ndarray:
     """(P, N) whether each pair is within ``threshold`` (Sampson distance, pixels) of the
-    lines of ``[e']_x H`` for each of the P ``epipoles``, in blocks that bound the memory."""
+    lines of ``[e']_x H`` for each of the P ``epipoles``, in blocks of about a million
+    distances (a few tens of MB)."""
     x = np.column_stack([ref, np.ones(len(ref))])
     hx = x @ H.T
     xp = np.column_stack([mov, np.ones(len(mov))])
     out = np.empty((len(epipoles), len(ref)), bool)
-    for start in range(0, len(epipoles), 1024):
-        e = epipoles[start:start + 1024]
+    block = max(1, 2**20 // max(len(ref), 1))
+    for start in range(0, len(epipoles), block):
+        e = epipoles[start:start + block]
         lines = np.cross(e[:, None, :], hx[None, :, :])  # F x = e' x (H x)
         # F^T x' = H^T (x' x e'): the reference image's lines.
         back = np.cross(xp[None, :, :], e[:, None, :]) @ H
@@ -386,7 +398,7 @@ def _supports(epipoles: np.ndarray, H: np.ndarray, ref: np.ndarray, mov: np.ndar
                     + back[..., 0] ** 2 + back[..., 1] ** 2)
         with np.errstate(divide="ignore", invalid="ignore"):
             distance = np.abs(error) / np.sqrt(gradient)
-        out[start:start + 1024] = np.isfinite(distance) & (distance <= threshold)
+        out[start:start + block] = np.isfinite(distance) & (distance <= threshold)
     return out
 
 
