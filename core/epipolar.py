@@ -126,22 +126,22 @@ def sampson_distance(F: np.ndarray, ref: np.ndarray, mov: np.ndarray) -> np.ndar
     Parameters
     ----------
     F : np.ndarray
-        (3, 3) fundamental matrix.
+        (3, 3) fundamental matrix, or a stack (..., 3, 3) of them.
     ref, mov : np.ndarray
         (N, 2) pixel coordinates in the reference and moving images.
 
     Returns
     -------
     np.ndarray
-        (N,) float64 distances (``inf`` where the denominator vanishes).
+        (..., N) float64 distances (``inf`` where the denominator vanishes).
     """
     ref = np.asarray(ref, dtype=np.float64).reshape(-1, 2)
     mov = np.asarray(mov, dtype=np.float64).reshape(-1, 2)
     F = np.asarray(F, dtype=np.float64)
-    Fx = ref @ F[:, :2].T + F[:, 2]  # (N, 3) = F [x, y, 1]^T
-    Ftxp = mov @ F[:2, :] + F[2, :]  # (N, 3) = F^T [x', y', 1]^T
-    num = np.abs(np.sum(mov * Fx[:, :2], axis=1) + Fx[:, 2])
-    den = np.sqrt(Fx[:, 0] ** 2 + Fx[:, 1] ** 2 + Ftxp[:, 0] ** 2 + Ftxp[:, 1] ** 2)
+    Fx = ref @ np.swapaxes(F[..., :, :2], -1, -2) + F[..., None, :, 2]  # F [x, y, 1]^T
+    Ftxp = mov @ F[..., :2, :] + F[..., None, 2, :]  # F^T [x', y', 1]^T
+    num = np.abs(np.sum(mov * Fx[..., :2], axis=-1) + Fx[..., 2])
+    den = np.sqrt(Fx[..., 0] ** 2 + Fx[..., 1] ** 2 + Ftxp[..., 0] ** 2 + Ftxp[..., 1] ** 2)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = num / den
     return np.where(den > 0, d, np.inf)
@@ -321,8 +321,8 @@ def parallax_fundamental(
         return None
     if k:
         first = lines[0]
-        proposals = np.array([[first[1], -first[0], 0.0]]
-                             + [np.cross(first, line) for line in lines[k:][usable[k:]]])
+        proposals = np.vstack([[first[1], -first[0], 0.0],
+                               np.cross(first, lines[k:][usable[k:]])])
     else:
         candidates = lines[usable]
         i, j = _couples(len(candidates), PARALLAX_PROPOSALS, seed)
@@ -383,28 +383,22 @@ def _supports(epipoles: np.ndarray, H: np.ndarray, ref: np.ndarray, mov: np.ndar
     """(P, N) whether each pair is within ``threshold`` (Sampson distance, pixels) of the
     lines of ``[e']_x H`` for each of the P ``epipoles``, in blocks of about a million
     distances (a few tens of MB)."""
-    x = np.column_stack([ref, np.ones(len(ref))])
-    hx = x @ H.T
-    xp = np.column_stack([mov, np.ones(len(mov))])
     out = np.empty((len(epipoles), len(ref)), bool)
     block = max(1, 2**20 // max(len(ref), 1))
     for start in range(0, len(epipoles), block):
-        e = epipoles[start:start + block]
-        lines = np.cross(e[:, None, :], hx[None, :, :])  # F x = e' x (H x)
-        # F^T x' = H^T (x' x e'): the reference image's lines.
-        back = np.cross(xp[None, :, :], e[:, None, :]) @ H
-        error = np.einsum("pnk,nk->pn", lines, xp)
-        gradient = (lines[..., 0] ** 2 + lines[..., 1] ** 2
-                    + back[..., 0] ** 2 + back[..., 1] ** 2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            distance = np.abs(error) / np.sqrt(gradient)
-        out[start:start + block] = np.isfinite(distance) & (distance <= threshold)
+        F = _cross_matrix(epipoles[start:start + block]) @ H
+        out[start:start + block] = sampson_distance(F, ref, mov) <= threshold
     return out
 
 
 def _cross_matrix(v: np.ndarray) -> np.ndarray:
-    """``[v]_x``: the matrix of the cross product with ``v``."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    """``[v]_x``: the matrix of the cross product with ``v`` (3,), or a stack (..., 3, 3)
+    of them for vectors (..., 3)."""
+    v = np.asarray(v, np.float64)
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    zero = np.zeros_like(x)
+    return np.stack([np.stack([zero, -z, y], axis=-1), np.stack([z, zero, -x], axis=-1),
+                     np.stack([-y, x, zero], axis=-1)], axis=-2)
 
 
 # --- epipolar lines -------------------------------------------------------------------------------

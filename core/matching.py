@@ -21,9 +21,9 @@ than SIFT itself, since LK works at full resolution). Of the tracked, SIFT and S
 tracked pairs it keeps the largest epipolar-consistent set, preferring those that pass both
 criteria; ``source`` names the matcher of the
 kept pairs, and the counts of a tracking attempt that lost carry an ``lk_`` prefix
-(``prior_sift_pairs`` marks tracking started from SIFT). When only one or two kept pairs lie
+(``prior_sift_pairs`` marks tracking started from SIFT). When none, one or two kept pairs lie
 off the plane of the others, SIFT's pairs off that plane may fix the epipole instead of the
-robust fit (:func:`_parallax_lines`).
+robust fit or the plane's model (:func:`_parallax_lines`).
 
 Automatic pairs are first checked by correlation (:func:`core.reliability.uniqueness`: a pair
 on a repeated pattern, or whose correlation peak is not where the matcher put it, is dropped),
