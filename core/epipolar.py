@@ -278,6 +278,12 @@ def parallax_fundamental(
     meet near some point together and as well near others, and those of a pattern repeated on
     the plane, all one period off, meet where their parallel lines do.
 
+    The fixed pairs may be wrong themselves: a corner of an occluding edge over the plane,
+    matched where the two surfaces make the same corner, moves off the plane with no depth
+    of its own. When no epipole on their lines passes, the other pairs alone propose one
+    (as without a fixed pair), which must also gather :data:`PARALLAX_GAIN` times as many
+    pairs as the best epipole on the fixed pairs' lines, those counted.
+
     Parameters
     ----------
     H : np.ndarray
@@ -309,15 +315,44 @@ def parallax_fundamental(
     ref = np.concatenate([f_ref, c_ref[off]])
     mov = np.concatenate([f_mov, c_mov[off]])
     k = len(f_ref)
-    proposers = 0 if k else 2
-    if len(ref) - k < PARALLAX_SUPPORT + proposers:
-        return None
     ones = np.ones((len(ref), 1))
     lines = np.cross(np.hstack([apply_homography(H, ref), ones]), np.hstack([mov, ones]))
     with np.errstate(invalid="ignore", divide="ignore"):
         lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
     usable = np.isfinite(lines).all(axis=1)
-    if not usable[:k].all():
+    pinned = None
+    if k and usable[:k].all():
+        pinned = _epipole(H, ref, mov, lines, usable, k, threshold=threshold, seed=seed)
+        if pinned is not None and _passes(pinned, H, ref, mov, k, current, threshold):
+            return _signed(pinned.matrix, current), int(pinned.support.sum()) - k
+    # The pairs off the plane alone (the fixed ones are left out of the count).
+    free = _epipole(H, ref[k:], mov[k:], lines[k:], usable[k:], 0, threshold=threshold,
+                    seed=seed)
+    if free is None or not _passes(free, H, ref[k:], mov[k:], 0, current, threshold):
+        return None
+    if pinned is not None and free.support.sum() < PARALLAX_GAIN * pinned.support.sum():
+        return None
+    return _signed(free.matrix, current), int(free.support.sum())
+
+
+@dataclass(frozen=True)
+class _Epipole:
+    """The best proposal of :func:`_epipole`: its matrix, which pairs support it, the support
+    of its best rival and the spread of its supporters' displacements (both without a fixed
+    pair only; else 0 and infinity)."""
+
+    matrix: np.ndarray
+    support: np.ndarray
+    rival: int
+    spread: float
+
+
+def _epipole(H: np.ndarray, ref: np.ndarray, mov: np.ndarray, lines: np.ndarray,
+             usable: np.ndarray, k: int, *, threshold: float, seed: int) -> _Epipole | None:
+    """The epipole most of the pairs support among the proposals of
+    :func:`parallax_fundamental` (through the first ``k`` pairs' lines, or where two lines
+    meet), refitted; None without a proposal."""
+    if len(ref) - k < PARALLAX_SUPPORT + (0 if k else 2):
         return None
     if k:
         first = lines[0]
@@ -343,26 +378,32 @@ def parallax_fundamental(
         rival = int(counts[apart].max()) if apart.any() else 0
         shift = mov[best] - apply_homography(H, ref[best])
         spread = float(np.sqrt(np.mean(np.sum((shift - shift.mean(axis=0)) ** 2, axis=1))))
-
-    def support(F: np.ndarray) -> np.ndarray:
-        return sampson_distance(F, ref, mov) <= threshold
-
     # The point nearest every supporter's line (the right singular vector of least weight),
     # unless it leaves a fixed pair off its lines or fewer pairs on them.
     F = _cross_matrix(proposals[chosen]) @ H
     refitted = _cross_matrix(np.linalg.svd(lines[best])[2][-1]) @ H
-    kept = support(refitted)
+    kept = sampson_distance(refitted, ref, mov) <= threshold
     if kept[:k].all() and kept.sum() >= best.sum():
         F, best = refitted, kept
-    found = int(best.sum()) - k
-    if (found < max(PARALLAX_SUPPORT + proposers, PARALLAX_SHARE * (len(ref) - k))
-            or best.sum() < PARALLAX_GAIN * np.count_nonzero(support(current))
-            or best.sum() < PARALLAX_GAIN * rival or spread < PARALLAX_SPREAD):
-        return None
+    return _Epipole(F, best, rival, spread)
+
+
+def _passes(found: _Epipole, H: np.ndarray, ref: np.ndarray, mov: np.ndarray, k: int,
+            current: np.ndarray, threshold: float) -> bool:
+    """Whether ``found`` meets the support, share, gain, rival and spread tests of
+    :func:`parallax_fundamental`, with ``k`` fixed pairs first in ``ref``/``mov``."""
+    count = int(found.support.sum())
+    return not (count - k < max(PARALLAX_SUPPORT + (0 if k else 2),
+                                PARALLAX_SHARE * (len(ref) - k))
+                or count < PARALLAX_GAIN * np.count_nonzero(
+                    sampson_distance(current, ref, mov) <= threshold)
+                or count < PARALLAX_GAIN * found.rival or found.spread < PARALLAX_SPREAD)
+
+
+def _signed(F: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """``F`` at unit Frobenius norm, with the sign of ``current``."""
     F = F / np.linalg.norm(F)
-    if np.sum(F * current) < 0:
-        F = -F
-    return F, found
+    return -F if np.sum(F * current) < 0 else F
 
 
 def _couples(n: int, most: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
