@@ -325,7 +325,7 @@ def parallax_fundamental(
         pinned = _epipole(H, ref, mov, lines, usable, k, threshold=threshold, seed=seed)
         if pinned is not None and _passes(pinned, H, ref, mov, k, current, threshold):
             return _signed(pinned.matrix, current), int(pinned.support.sum()) - k
-    # The pairs off the plane alone (the fixed ones are left out of the count).
+    # Without the fixed pairs, which may be wrong (and so are left out of the count).
     free = _epipole(H, ref[k:], mov[k:], lines[k:], usable[k:], 0, threshold=threshold,
                     seed=seed)
     if free is None or not _passes(free, H, ref[k:], mov[k:], 0, current, threshold):

@@ -268,6 +268,31 @@ def test_a_strip_is_judged_on_a_level_wide_enough(shape):
     assert np.median(error) < 0.1
 
 
+def on_the_ground(family, seed, baseline=12.0):
+    """A scene of the trust suite's polyhedral group: ``family`` standing on textured ground."""
+    from bench.scenes import make_scene
+
+    return make_scene(family, seed, size=(640, 480), n_interior=0, supersample=2,
+                      camera="perspective", radiometric="lighting", noise=3.0, blur=0.5,
+                      baseline=baseline)
+
+
+def against_delaunay(scene):
+    """The default registration of ``scene`` (extent hull), its mean endpoint error and that
+    of Delaunay's mesh over the matched pairs."""
+    from bench.metrics import endpoint_error
+
+    def epe(result):
+        return endpoint_error(result.reference_vertices, result.moving_vertices,
+                              result.final_triangles, scene.truth_x, scene.truth_y,
+                              scene.covisible)["mean"]
+
+    result = register(scene.reference, scene.moving, options={"extent": "hull"})
+    plain = register(scene.reference, scene.moving,
+                     options={"extent": "hull", "optimizer": "none", "insert_vertices": "never"})
+    return result, epe(result), epe(plain)
+
+
 def test_no_pair_is_searched_along_lines_that_the_pairs_do_not_determine():
     # The matcher's pairs of this gable all lie on the ground, and SIFT's pairs off it fix no
     # epipole: the model is the plane's, whose lines pass through the ground's pairs in a
@@ -275,11 +300,8 @@ def test_no_pair_is_searched_along_lines_that_the_pairs_do_not_determine():
     # its front, median), 16 of 37 inserted pairs were 8-106 px off, a mesh 9.7 % worse than
     # Delaunay's: the insertion keeps to the plane.
     from bench.metrics import truth_at
-    from bench.scenes import make_scene
 
-    scene = make_scene("gable", 102, size=(640, 480), n_interior=0, supersample=2,
-                       camera="perspective", radiometric="lighting", noise=3.0, blur=0.5,
-                       baseline=22.0)
+    scene = on_the_ground("gable", 102, baseline=22.0)
     result = register(scene.reference, scene.moving, options={"extent": "hull"})
     assert result.points.epipolar.plane is not None
     assert result.inserted.any()
@@ -293,45 +315,17 @@ def test_no_pair_is_searched_along_lines_that_the_pairs_do_not_determine():
 def test_sift_s_pairs_off_the_plane_open_the_surfaces_above_it_to_the_insertion():
     # That box: SIFT's pairs off the ground fix the epipole (core.epipolar.parallax_fundamental
     # without a fixed pair), and the insertion finds pairs on its faces along the lines.
-    from bench.metrics import endpoint_error
-    from bench.scenes import make_scene
-
-    scene = make_scene("box", 73, size=(640, 480), n_interior=0, supersample=2,
-                       camera="perspective", radiometric="lighting", noise=3.0, blur=0.5,
-                       baseline=12.0)
-
-    def epe(result):
-        return endpoint_error(result.reference_vertices, result.moving_vertices,
-                              result.final_triangles, scene.truth_x, scene.truth_y,
-                              scene.covisible)["mean"]
-
-    result = register(scene.reference, scene.moving, options={"extent": "hull"})
-    plain = register(scene.reference, scene.moving,
-                     options={"extent": "hull", "optimizer": "none", "insert_vertices": "never"})
+    result, epe, delaunay = against_delaunay(on_the_ground("box", 73))
     assert result.points.epipolar.plane is None and result.points.epipolar.parallax >= 8
-    assert epe(result) < 0.25 * epe(plain)  # 4.5 px against 43.1 (the plane's lines: 43.5)
+    assert epe < 0.25 * delaunay  # 4.5 px against 43.1 (the plane's lines: 43.5)
 
 
 def test_sift_s_pairs_overrule_wrong_pairs_off_the_plane():
     # A prism whose only tracked pairs off the ground are wrong: their epipole kept the
     # insertion off its faces (16.5 px, Delaunay 16.6); SIFT's pairs fix another.
-    from bench.metrics import endpoint_error
-    from bench.scenes import make_scene
-
-    scene = make_scene("prism", 113, size=(640, 480), n_interior=0, supersample=2,
-                       camera="perspective", radiometric="lighting", noise=3.0, blur=0.5,
-                       baseline=12.0)
-
-    def epe(result):
-        return endpoint_error(result.reference_vertices, result.moving_vertices,
-                              result.final_triangles, scene.truth_x, scene.truth_y,
-                              scene.covisible)["mean"]
-
-    result = register(scene.reference, scene.moving, options={"extent": "hull"})
-    plain = register(scene.reference, scene.moving,
-                     options={"extent": "hull", "optimizer": "none", "insert_vertices": "never"})
+    result, epe, delaunay = against_delaunay(on_the_ground("prism", 113))
     assert result.points.epipolar.parallax >= 8
-    assert epe(result) < 0.7 * epe(plain)  # 8.7 px against 16.6
+    assert epe < 0.7 * delaunay  # 8.7 px against 16.6
 
 
 def test_a_map_no_epipolar_geometry_explains_is_not_called_good():
