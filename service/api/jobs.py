@@ -34,6 +34,7 @@ from pwlreg.service.auth import ClientDep
 from pwlreg.service.deps import Services, ServicesDep
 from pwlreg.service.logs import job_extra
 from pwlreg.service.problems import (
+    Problem,
     from_input_error,
     from_validation_error,
     idempotency_conflict,
@@ -326,9 +327,26 @@ def _precheck(
     services: Services, client: str | None, key: str | None, content_length: str | None
 ) -> None:
     """The limits checked before the upload is received: a refused client sends nothing."""
-    if key is None or services.store.get_by_idempotency_key(key) is None:
-        check_queue(services, client)  # a replay of a known key is answered whatever the queue
+    _check_queue_unless_replay(services, client, key)
     check_disk(services, content_length)
+
+
+def _check_queue_unless_replay(services: Services, client: str | None, key: str | None) -> None:
+    """:func:`check_queue` for a new job; a replay of a known idempotency ``key`` is answered
+    whatever the queue. A full queue looks the key up again: the job that fills it may be the
+    key's own, made by a request with the same key since the first lookup (twelve requests
+    with one key at once on a full queue: one was refused)."""
+
+    def replay() -> bool:
+        return key is not None and services.store.get_by_idempotency_key(key) is not None
+
+    if replay():
+        return
+    try:
+        check_queue(services, client)
+    except Problem:
+        if not replay():
+            raise
 
 
 def _read_callback(
@@ -370,7 +388,8 @@ def _accept(
                     existing.id,
                 )
             return existing, False
-    check_queue(services, client)  # again: other jobs may have come while this one uploaded
+    # Again: other jobs may have come while this one uploaded.
+    _check_queue_unless_replay(services, client, key)
     options, has_points = validate_submission(form, settings.max_pixels,
                                               settings.max_raster_pixels)
     callback = _read_callback(form, AllowList.parse(settings.webhook_allow), base_url)
@@ -382,8 +401,7 @@ def _accept(
         # The last check and the row in one step: 30 submissions at once all passed the check
         # above while their images were validated, and 29 jobs waited under a limit of 5.
         with _ADMISSION:
-            if key is None or store.get_by_idempotency_key(key) is None:
-                check_queue(services, client)  # a replay is answered whatever the queue
+            _check_queue_unless_replay(services, client, key)
             job, created = store.create(
                 job_id,
                 options,
