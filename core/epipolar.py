@@ -282,7 +282,8 @@ def parallax_fundamental(
     matched where the two surfaces make the same corner, moves off the plane with no depth
     of its own. When no epipole on their lines passes, the other pairs alone propose one
     (as without a fixed pair), which must also gather :data:`PARALLAX_GAIN` times as many
-    pairs as the best epipole on the fixed pairs' lines, those counted.
+    pairs as the best epipole on the fixed pairs' lines, those counted; failing that, each
+    fixed pair is tried alone, and the one (only) whose lines find an epipole fixes it.
 
     Parameters
     ----------
@@ -328,11 +329,16 @@ def parallax_fundamental(
     # Without the fixed pairs, which may be wrong (and so are left out of the count).
     free = _epipole(H, ref[k:], mov[k:], lines[k:], usable[k:], 0, threshold=threshold,
                     seed=seed)
-    if free is None or not _passes(free, H, ref[k:], mov[k:], 0, current, threshold):
+    if (free is not None and _passes(free, H, ref[k:], mov[k:], 0, current, threshold)
+            and (pinned is None or free.support.sum() >= PARALLAX_GAIN * pinned.support.sum())):
+        return _signed(free.matrix, current), int(free.support.sum())
+    if k < 2:
         return None
-    if pinned is not None and free.support.sum() < PARALLAX_GAIN * pinned.support.sum():
-        return None
-    return _signed(free.matrix, current), int(free.support.sum())
+    # One of the fixed pairs may be right: the one whose lines alone find an epipole.
+    alone = [parallax_fundamental(H, (f_ref[i:i + 1], f_mov[i:i + 1]), pairs, current,
+                                  threshold=threshold, seed=seed) for i in range(k)]
+    found = [a for a in alone if a is not None]
+    return found[0] if len(found) == 1 else None
 
 
 @dataclass(frozen=True)
