@@ -283,7 +283,8 @@ def parallax_fundamental(
     of its own. When no epipole on their lines passes, the other pairs alone propose one
     (as without a fixed pair), which must also gather :data:`PARALLAX_GAIN` times as many
     pairs as the best epipole on the fixed pairs' lines, those counted; failing that, each
-    fixed pair is tried alone, and the one (only) whose lines find an epipole fixes it.
+    fixed pair is tried alone (all of the above with that pair as the only fixed one), and
+    a result found for one of them only is kept.
 
     Parameters
     ----------
@@ -334,7 +335,7 @@ def parallax_fundamental(
         return _signed(free.matrix, current), int(free.support.sum())
     if k < 2:
         return None
-    # One of the fixed pairs may be right: the one whose lines alone find an epipole.
+    # One of the fixed pairs may be right: the one for which alone an epipole passes.
     alone = [parallax_fundamental(H, (f_ref[i:i + 1], f_mov[i:i + 1]), pairs, current,
                                   threshold=threshold, seed=seed) for i in range(k)]
     found = [a for a in alone if a is not None]

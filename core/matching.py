@@ -1115,7 +1115,7 @@ def _parallax_lines(
     themselves (corners of an edge matched over other ground); SIFT's pairs then overrule them
     if they clearly outnumber the support of any epipole on those pairs' lines (prisms and
     boxes on the ground: lines 7-57 px from their true matches at the 90th percentile, 0.2-10
-    px after), or the one of two whose lines alone find SIFT's support fixes the epipole.
+    px after), or SIFT's support found with one of two such pairs alone fixes the epipole.
     ``sift()`` gives SIFT's matches of the two images, called in these cases only;
     ``threshold`` is the epipolar filter's.
     """
