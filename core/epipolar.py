@@ -322,24 +322,35 @@ def parallax_fundamental(
     with np.errstate(invalid="ignore", divide="ignore"):
         lines /= np.hypot(lines[:, 0], lines[:, 1])[:, None]
     usable = np.isfinite(lines).all(axis=1)
-    pinned = None
-    if k and usable[:k].all():
-        pinned = _epipole(H, ref, mov, lines, usable, k, threshold=threshold, seed=seed)
-        if pinned is not None and _passes(pinned, H, ref, mov, k, current, threshold):
-            return _signed(pinned.matrix, current), int(pinned.support.sum()) - k
-    # Without the fixed pairs, which may be wrong (and so are left out of the count).
+    # Without the fixed pairs, which may be wrong (and so are left out of its count).
     free = _epipole(H, ref[k:], mov[k:], lines[k:], usable[k:], 0, threshold=threshold,
                     seed=seed)
-    if (free is not None and _passes(free, H, ref[k:], mov[k:], 0, current, threshold)
-            and (pinned is None or free.support.sum() >= PARALLAX_GAIN * pinned.support.sum())):
-        return _signed(free.matrix, current), int(free.support.sum())
-    if k < 2:
+    if free is not None and not _passes(free, H, ref[k:], mov[k:], 0, current, threshold):
+        free = None
+
+    def fixing(rows: np.ndarray) -> tuple[np.ndarray, int] | None:
+        """The epipole on the lines of the fixed pairs ``rows``, else ``free`` if it gathers
+        PARALLAX_GAIN times the support of the best on them."""
+        pick = np.concatenate([rows, np.arange(k, len(ref))])
+        n = len(rows)
+        pinned = None
+        if n and usable[rows].all():
+            pinned = _epipole(H, ref[pick], mov[pick], lines[pick], usable[pick], n,
+                              threshold=threshold, seed=seed)
+            if pinned is not None and _passes(pinned, H, ref[pick], mov[pick], n, current,
+                                              threshold):
+                return _signed(pinned.matrix, current), int(pinned.support.sum()) - n
+        if free is not None and (pinned is None
+                                 or free.support.sum() >= PARALLAX_GAIN * pinned.support.sum()):
+            return _signed(free.matrix, current), int(free.support.sum())
         return None
+
+    found = fixing(np.arange(k))
+    if found is not None or k < 2:
+        return found
     # One of the fixed pairs may be right: the one for which alone an epipole passes.
-    alone = [parallax_fundamental(H, (f_ref[i:i + 1], f_mov[i:i + 1]), pairs, current,
-                                  threshold=threshold, seed=seed) for i in range(k)]
-    found = [a for a in alone if a is not None]
-    return found[0] if len(found) == 1 else None
+    alone = [a for a in (fixing(np.array([i])) for i in range(k)) if a is not None]
+    return alone[0] if len(alone) == 1 else None
 
 
 @dataclass(frozen=True)

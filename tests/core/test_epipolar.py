@@ -264,8 +264,7 @@ def a_wrong_epipole(H, ref, mov, along):
     line = np.cross(np.append(cv2.perspectiveTransform(ref[None, :1], H)[0, 0], 1.0),
                     np.append(mov[0], 1.0))
     foot = mov[0] + along * np.array([line[1], -line[0]]) / np.hypot(line[0], line[1])
-    e = np.append(foot, 1.0)
-    return np.array([[0, -e[2], e[1]], [e[2], 0, -e[0]], [-e[1], e[0], 0]]) @ H
+    return cross_matrix(np.append(foot, 1.0)) @ H
 
 
 def test_pairs_off_the_plane_fix_the_epipole_one_pair_leaves_open():
